@@ -1,0 +1,108 @@
+"""The track format: what every tracker writes and fitting reads (one ``.npz`` per clip).
+
+Fields
+------
+keypoints : (T, K, 2) float32, pixels (origin top-left); NaN where the tracker found nothing
+confidence : (T, K) float32 in [0, 1]; 0 where missing
+landmark_set : str, e.g. ``"mediapipe_holistic"`` (K = 33 pose + 21 left hand + 21 right hand + 468 face)
+image_size : (2,) int, (width, height)
+fps : float
+intrinsics : (4,) float32 (fx, fy, cx, cy) when the camera is calibrated, else NaN
+tracker : str, the tracker that wrote it
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MEDIAPIPE_HOLISTIC_PARTS = {"pose": 33, "left_hand": 21, "right_hand": 21, "face": 468}
+
+
+def landmark_slices(landmark_set: str) -> dict[str, slice]:
+    """Part name -> slice into the K axis."""
+    if landmark_set != "mediapipe_holistic":
+        raise ValueError(f"unknown landmark set {landmark_set!r}; known: mediapipe_holistic")
+    out, start = {}, 0
+    for part, n in MEDIAPIPE_HOLISTIC_PARTS.items():
+        out[part] = slice(start, start + n)
+        start += n
+    return out
+
+
+class TrackError(ValueError):
+    """A track file that cannot be used; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Track:
+    keypoints: np.ndarray
+    confidence: np.ndarray
+    landmark_set: str
+    image_size: tuple[int, int]
+    fps: float
+    intrinsics: np.ndarray
+    tracker: str
+
+    @property
+    def num_frames(self) -> int:
+        return self.keypoints.shape[0]
+
+
+def save_track(track: Track, path: str | Path) -> Path:
+    """Write atomically (temp file + rename) so a killed run never leaves a half-written track."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz.tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(
+                fh,
+                keypoints=track.keypoints.astype(np.float32),
+                confidence=track.confidence.astype(np.float32),
+                landmark_set=np.array(track.landmark_set),
+                image_size=np.asarray(track.image_size, dtype=np.int64),
+                fps=np.array(track.fps, dtype=np.float64),
+                intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
+                tracker=np.array(track.tracker),
+            )
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_track(path: str | Path) -> Track:
+    """Read and validate a track file; NaN keypoints get zero confidence."""
+    path = Path(path)
+    if not path.exists():
+        raise TrackError(f"track file {path} does not exist; run the tracking step for this clip first")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            fields = {k: data[k] for k in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise TrackError(f"track file {path} is unreadable ({exc}); delete it and re-run tracking") from exc
+    required = ("keypoints", "confidence", "landmark_set", "image_size", "fps")
+    missing = [k for k in required if k not in fields]
+    if missing:
+        raise TrackError(f"track file {path} lacks fields {missing}; expected {list(required)}")
+    kp, conf = fields["keypoints"].astype(np.float32), fields["confidence"].astype(np.float32)
+    if kp.ndim != 3 or kp.shape[-1] != 2 or conf.shape != kp.shape[:2]:
+        raise TrackError(f"track file {path}: keypoints {kp.shape} / confidence {conf.shape} are not (T, K, 2) / (T, K)")
+    if kp.shape[0] == 0:
+        raise TrackError(f"track file {path} has no frames")
+    landmark_set = str(fields["landmark_set"])
+    expected = sum(MEDIAPIPE_HOLISTIC_PARTS.values()) if landmark_set == "mediapipe_holistic" else kp.shape[1]
+    if kp.shape[1] != expected:
+        raise TrackError(f"track file {path}: {kp.shape[1]} landmarks, {landmark_set} has {expected}")
+    bad = ~np.isfinite(kp).all(-1)
+    conf = np.where(bad, 0.0, np.clip(np.nan_to_num(conf, nan=0.0), 0.0, 1.0)).astype(np.float32)
+    kp = np.where(bad[..., None], np.nan, kp).astype(np.float32)
+    intr = fields.get("intrinsics", np.full(4, np.nan, dtype=np.float32))
+    return Track(kp, conf, landmark_set, tuple(int(v) for v in fields["image_size"]), float(fields["fps"]),
+                 np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")))
