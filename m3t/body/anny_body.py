@@ -30,7 +30,7 @@ import roma
 import torch
 
 from m3t.body.protocol import BodyOutput, Correspondence, Modality, ModalityLayout, Params
-from m3t.body.rotations import identity_6d, sixd_to_matrix
+from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 
 DATA_DIR = Path(__file__).parent / "data"
 DEFAULT_CACHE_DIR = Path(".cache") / "anny"
@@ -89,6 +89,7 @@ class AnnyBody(torch.nn.Module):
         self._anny = model  # used for phenotype -> blendshape weights and the kinematic chain only
         labels = list(model.bone_labels)
         self.joint_names = tuple(labels)
+        self.joint_parents = tuple(int(p) for p in model.bone_parents)
         self.layout = ModalityLayout(
             modalities=(
                 Modality("body", "rotation6d", BODY_BONES),
@@ -117,6 +118,14 @@ class AnnyBody(torch.nn.Module):
         self._stream_bones = {
             m.name: torch.tensor([bone_of[b] for b in m.labels]) for m in self.layout.modalities if m.kind == "rotation6d"
         }
+        # Anny's identity rotations give its reference posture, which differs from the template mesh by up to
+        # ~1.5 cm at the arms. We define the rest pose as the template instead: every bone starts from its
+        # template rotation (bones outside the streams keep it), so rest parameters reproduce the template.
+        rest = self._rest_bones(self._identity_coeffs(self.default_identity()))
+        base = model.get_pose_parameterization({"rest_bone_poses": rest, "bone_poses": rest}, "local-ref")[0]
+        base[0] = torch.eye(4)  # the root stays at the origin; the camera carries the global placement
+        base[:, :3, 3] = 0.0
+        self.register_buffer("base_delta", base, persistent=False)  # (J, 4, 4)
 
     # ------------------------------------------------------------------ parameters
     def rest_params(self, batch: int) -> dict[str, torch.Tensor]:
@@ -124,7 +133,8 @@ class AnnyBody(torch.nn.Module):
         out = {}
         for m in self.layout.modalities:
             if m.kind == "rotation6d":
-                out[m.name] = identity_6d(batch, len(m.labels), device=device).reshape(batch, m.dim)
+                rest = matrix_to_6d(self.base_delta[self._stream_bones[m.name], :3, :3])  # (n, 6)
+                out[m.name] = rest.reshape(1, m.dim).expand(batch, -1).clone()
             else:
                 out[m.name] = torch.zeros(batch, m.dim, device=device)
         return out
@@ -152,7 +162,7 @@ class AnnyBody(torch.nn.Module):
     def _bone_transforms(self, params: Params, rest_bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Skinning transforms and posed bone poses, both (B, J, 4, 4)."""
         batch = self.layout.check(params)
-        delta = torch.eye(4, device=rest_bones.device, dtype=rest_bones.dtype).repeat(batch, len(self.joint_names), 1, 1)
+        delta = self.base_delta.expand(batch, -1, -1, -1).clone()
         for name, bones in self._stream_bones.items():
             rot = sixd_to_matrix(params[name].reshape(batch, -1, 6))  # (B, n, 3, 3)
             delta[:, bones.to(delta.device), :3, :3] = rot

@@ -102,6 +102,7 @@ class BodyModel(Protocol):
     name: str
     layout: ModalityLayout
     joint_names: tuple[str, ...]
+    joint_parents: tuple[int, ...]  # parent index per joint, -1 for the root
     faces: np.ndarray  # (F, 3) int
 
     def rest_params(self, batch: int) -> dict[str, torch.Tensor]:
