@@ -95,9 +95,10 @@ class AnnyBody(torch.nn.Module):
                 Modality("body", "rotation6d", BODY_BONES),
                 Modality("left_hand", "rotation6d", hand_bones("L"), mirror_of="right_hand"),
                 Modality("right_hand", "rotation6d", hand_bones("R"), mirror_of="left_hand"),
-                Modality("face", "scalar", tuple(model.facial_action_labels)),
+                Modality("face", "scalar", tuple(model.facial_action_labels), bounds=(0.0, 1.0)),
             ),
             identity_labels=PHENOTYPES,
+            identity_bounds=(0.0, 1.0),
         )
         f32 = torch.float32
         n_face = len(model.facial_action_labels)

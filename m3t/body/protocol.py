@@ -28,6 +28,7 @@ class Modality:
     kind: Literal["rotation6d", "scalar"]
     labels: tuple[str, ...]
     mirror_of: str | None = None  # the stream this one mirrors into (left hand <-> right hand)
+    bounds: tuple[float, float] | None = None  # valid range of scalar values (Anny facial actions: [0, 1])
 
     @property
     def dim(self) -> int:
@@ -38,6 +39,7 @@ class Modality:
 class ModalityLayout:
     modalities: tuple[Modality, ...]
     identity_labels: tuple[str, ...]
+    identity_bounds: tuple[float, float] | None = None
 
     @property
     def names(self) -> tuple[str, ...]:

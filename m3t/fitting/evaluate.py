@@ -2,13 +2,16 @@
 
 Joint error uses the heads of every bone a rotation stream drives (upper body, wrists, all finger
 joints). A monocular fit only observes the body relative to its camera (a rotation of the camera and a
-counter-rotation of the spine give the same image), so joints are compared in each one's camera frame,
-after removing the per-frame centroid (translation alignment, no rotation or scale).
+counter-rotation of the spine give the same image), so ``joint_mm`` compares joints in each one's camera
+frame after removing the per-frame centroid (translation alignment only): it still contains the depth
+ambiguity of a single view. ``pa_joint_mm`` aligns each frame by a similarity Procrustes (the usual
+PA-MPJPE) and measures articulation only; it needs no camera, so the tracker initialisation gets it too.
 Axis legend: T frames, J joints, D modality dim.
 """
 from __future__ import annotations
 
 import numpy as np
+import roma
 import torch
 
 from m3t.body.protocol import BodyModel, Correspondence
@@ -24,6 +27,19 @@ def metric_joints(body: BodyModel) -> Correspondence:
 
 def _as_tensors(params: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
+
+
+def procrustes_error_mm(pred: torch.Tensor, truth: torch.Tensor) -> float:
+    """Mean joint error (mm) after per-frame similarity alignment of pred (T, J, 3) onto truth (T, J, 3)."""
+    rot, trans, scale = roma.rigid_points_registration(pred, truth, compute_scaling=True)
+    aligned = scale[:, None, None] * (pred @ rot.transpose(-1, -2)) + trans[:, None]
+    return float(torch.linalg.norm(aligned - truth, dim=-1).mean() * 1000.0)
+
+
+def joints_for(body: BodyModel, params: dict[str, np.ndarray], identity: np.ndarray) -> torch.Tensor:
+    """(T, J, 3) metric joints of a parameter sequence."""
+    kp = body.keypoint_set(metric_joints(body))
+    return body.forward_keypoints(_as_tensors(params), torch.as_tensor(identity, dtype=torch.float32), kp)
 
 
 def _camera_frame(joints: torch.Tensor, camera: dict) -> torch.Tensor:
@@ -45,11 +61,11 @@ def ground_truth_errors(
 ) -> dict[str, float]:
     """``joint_mm`` (mean per-joint 3D error), ``<rotation stream>_deg`` (mean geodesic angle) and
     ``<scalar stream>_abs`` (mean absolute error)."""
-    kp = body.keypoint_set(metric_joints(body))
-    fit_j = body.forward_keypoints(_as_tensors(fitted), torch.as_tensor(fitted_identity), kp)
-    true_j = body.forward_keypoints(_as_tensors(truth), torch.as_tensor(truth_identity), kp)
+    fit_j = joints_for(body, fitted, fitted_identity)
+    true_j = joints_for(body, truth, truth_identity)
     fit_c, true_c = _camera_frame(fit_j, fitted_camera), _camera_frame(true_j, truth_camera)
-    out = {"joint_mm": float(torch.linalg.norm(fit_c - true_c, dim=-1).mean() * 1000.0)}
+    out = {"joint_mm": float(torch.linalg.norm(fit_c - true_c, dim=-1).mean() * 1000.0),
+           "pa_joint_mm": procrustes_error_mm(fit_j, true_j)}
     for m in body.layout.modalities:
         a, b = torch.as_tensor(fitted[m.name]), torch.as_tensor(truth[m.name])
         if m.kind == "rotation6d":

@@ -51,11 +51,6 @@ class FitResult:
     loss_curve: list[float] = field(default_factory=list)
 
 
-def _logit(p: torch.Tensor) -> torch.Tensor:
-    p = p.clamp(1e-4, 1 - 1e-4)
-    return torch.log(p) - torch.log1p(-p)
-
-
 def _intrinsics(track: Track, cfg: FittingConfig) -> torch.Tensor:
     if np.isfinite(track.intrinsics).all():
         return torch.as_tensor(track.intrinsics, dtype=torch.float32)
@@ -95,10 +90,10 @@ def fit_track(
     track: Track,
     body: BodyModel,
     cfg: FittingConfig,
-    init: dict[str, torch.Tensor] | None = None,
     correspondence: Correspondence | None = None,
 ) -> FitResult:
-    """Fit body-model parameters to one clip's 2D track. ``init``: tracker initialisation (T, D) per modality."""
+    """Fit body-model parameters to one clip's 2D track, starting from the track's 3D initialisation (or
+    the rest pose when the tracker gave none)."""
     device = choose_device(cfg.device)
     if device.type != "cpu":
         body = body.to(device)  # type: ignore[attr-defined]
@@ -114,13 +109,19 @@ def fit_track(
     parts = list(landmark_slices(track.landmark_set).values())
     valid = torch.as_tensor(correspondence.valid, device=device)
 
-    init = {k: v.to(device) for k, v in (init or body.rest_params(T)).items()}
+    if track.init is not None:
+        init = {k: torch.as_tensor(track.init[k], device=device) for k in layout.names}
+        layout.check(init)
+    else:
+        init = {k: v.to(device) for k, v in body.rest_params(T).items()}
     rot_streams = [m.name for m in layout.modalities if m.kind == "rotation6d"]
     scalar_streams = [m.name for m in layout.modalities if m.kind == "scalar"]
     variables = {k: init[k].clone().requires_grad_(True) for k in rot_streams}
-    variables.update({k: _logit(init[k]).clone().requires_grad_(True) for k in scalar_streams})
+    # Bounded streams (Anny's facial actions and phenotypes live in [0, 1]) are optimised directly and
+    # projected back after each step (a sigmoid would freeze parameters that start at 0).
+    variables.update({k: init[k].clone().requires_grad_(True) for k in scalar_streams})
     identity0 = body.default_identity().to(device)
-    id_logit = _logit(identity0).clone().requires_grad_(cfg.fit_identity)
+    identity = identity0.clone().requires_grad_(cfg.fit_identity)
 
     rot0, trans0 = _init_extrinsics(body, identity0.cpu(), cfg)
     cam_rot = matrix_to_6d(rot0).to(device).requires_grad_(True)
@@ -128,11 +129,11 @@ def fit_track(
 
     def current_params() -> dict[str, torch.Tensor]:
         out = {k: variables[k] for k in rot_streams}
-        out.update({k: torch.sigmoid(variables[k]) for k in scalar_streams})
+        out.update({k: variables[k] for k in scalar_streams})
         return out
 
     def keypoints_uv(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        points = body.forward_keypoints(params, torch.sigmoid(id_logit), kpset)  # (T, K, 3)
+        points = body.forward_keypoints(params, identity, kpset)  # (T, K, 3)
         return points, project(points, sixd_to_matrix(cam_rot), cam_trans, intrinsics)
 
     curve: list[float] = []
@@ -143,7 +144,7 @@ def fit_track(
     if float(torso_conf.sum()) > 0:
         opt = torch.optim.Adam([cam_rot, cam_trans], lr=cfg.lr * 2)
         with torch.no_grad():
-            rest_points = body.forward_keypoints(current_params(), torch.sigmoid(id_logit), kpset)
+            rest_points = body.forward_keypoints(current_params(), identity, kpset)
         for _ in range(cfg.camera_iterations):
             opt.zero_grad()
             uv = project(rest_points, sixd_to_matrix(cam_rot), cam_trans, intrinsics)
@@ -152,7 +153,7 @@ def fit_track(
             opt.step()
 
     # Stage 2: everything, with the full objective.
-    opt = torch.optim.Adam([*variables.values(), id_logit, cam_rot, cam_trans], lr=cfg.lr)
+    opt = torch.optim.Adam([*variables.values(), identity, cam_rot, cam_trans], lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.iterations), eta_min=cfg.lr * 0.05)
     for _ in range(cfg.iterations):
         opt.zero_grad()
@@ -165,6 +166,12 @@ def fit_track(
         loss.backward()
         opt.step()
         sched.step()
+        with torch.no_grad():
+            for k in scalar_streams:
+                if layout[k].bounds is not None:
+                    variables[k].clamp_(*layout[k].bounds)
+            if layout.identity_bounds is not None:
+                identity.clamp_(*layout.identity_bounds)
         curve.append(float(loss.detach()))
 
     with torch.no_grad():
@@ -182,7 +189,7 @@ def fit_track(
                   "width": track.image_size[0], "height": track.image_size[1]}
     return FitResult(
         params={k: v.detach().cpu().numpy().astype(np.float32) for k, v in params.items()},
-        identity=torch.sigmoid(id_logit).detach().cpu().numpy().astype(np.float32),
+        identity=identity.detach().cpu().numpy().astype(np.float32),
         camera=camera,
         metrics=metrics,
         loss_curve=curve,

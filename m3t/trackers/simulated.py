@@ -4,7 +4,9 @@ The ground-truth parameters go through the body model's sparse keypoint forward 
 landmark correspondence), are projected with the clip's camera and corrupted the way a real 2D tracker
 is: per-part pixel noise that grows as confidence drops, per-point confidence, whole-hand dropouts over
 spans of frames (MediaPipe loses hands often) and random occlusions. Landmarks without a correspondence
-and points that leave the image get NaN with zero confidence. The output is an ordinary
+and points that leave the image get NaN with zero confidence. Like the paper's 3D trackers (NLF for the
+body, WiLoR for hands, Pixel3DMM for the face) it also gives a per-frame parameter estimate: ground truth
+with independent per-frame rotation noise on every joint and noise on the face, which fitting refines. The output is an ordinary
 :class:`m3t.trackers.track.Track`, so fitting has one code path for simulated and real tracks.
 
 Axis legend: T frames, K landmarks.
@@ -15,9 +17,11 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
+import roma
 import torch
 
-from m3t.body.protocol import BodyModel, Params
+from m3t.body.protocol import BodyModel, ModalityLayout, Params
+from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import Camera, camera_tensors, project
 from m3t.trackers.track import Track, landmark_slices
 
@@ -32,11 +36,32 @@ class SimulatedTrackerConfig:
     hand_dropout_max_frac: float = 0.3  # longest missing span, as a fraction of the clip
     occlusion_prob: float = 0.02  # chance per frame that a random 10% of points are occluded
     intrinsics_known: bool = True  # write the camera intrinsics into the track (a calibrated camera)
+    init_noise_deg_body: float = 6.0  # per-frame rotation noise of the 3D initialisation, body joints
+    init_noise_deg_hand: float = 10.0  # ... finger joints (hand estimators are less precise)
+    init_noise_scalar: float = 0.08  # std of the noise on scalar streams (face)
 
 
 def clip_rng(seed: int, clip_id: str) -> np.random.Generator:
     """Independent, order-free random stream per clip (so parallel runs give identical tracks)."""
     return np.random.default_rng([seed, zlib.crc32(clip_id.encode())])
+
+
+def noisy_initialisation(params: Params, layout: ModalityLayout, cfg: SimulatedTrackerConfig,
+                         rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Ground truth + per-frame, per-joint noise, as a 3D tracker's estimate: (T, D) per modality."""
+    out = {}
+    for m in layout.modalities:
+        value = params[m.name]
+        if m.kind == "rotation6d":
+            deg = cfg.init_noise_deg_hand if "hand" in m.name else cfg.init_noise_deg_body
+            rot = sixd_to_matrix(value.reshape(value.shape[0], -1, 6))  # (T, n, 3, 3)
+            noise = torch.as_tensor(rng.normal(0.0, np.deg2rad(deg), size=(*rot.shape[:2], 3)), dtype=rot.dtype)
+            out[m.name] = matrix_to_6d(roma.rotvec_to_rotmat(noise) @ rot).reshape(value.shape).numpy()
+        else:
+            noisy = value.numpy() + rng.normal(0.0, cfg.init_noise_scalar, size=value.shape)
+            out[m.name] = np.clip(noisy, *m.bounds) if m.bounds is not None else noisy
+        out[m.name] = out[m.name].astype(np.float32)
+    return out
 
 
 @torch.no_grad()
@@ -81,5 +106,6 @@ def simulate_track(
     uv[missing] = np.nan
     confidence[missing] = 0.0
     intr = intrinsics.numpy() if cfg.intrinsics_known else np.full(4, np.nan, dtype=np.float32)
+    init = noisy_initialisation(params, body.layout, cfg, rng)
     return Track(uv.astype(np.float32), confidence.astype(np.float32), landmark_set,
-                 (camera.width, camera.height), float(fps), intr.astype(np.float32), "simulated")
+                 (camera.width, camera.height), float(fps), intr.astype(np.float32), "simulated", init)

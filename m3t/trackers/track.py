@@ -9,6 +9,9 @@ image_size : (2,) int, (width, height)
 fps : float
 intrinsics : (4,) float32 (fx, fy, cx, cy) when the camera is calibrated, else NaN
 tracker : str, the tracker that wrote it
+init__<modality> : (T, D_m) float32, optional per-frame body-model parameters from 3D trackers (the paper's
+    NLF / WiLoR / Pixel3DMM estimates; simulated: ground truth plus tracker-like noise); the fitting
+    initialisation that ``L_reg`` pulls toward. Absent -> fitting starts from the rest pose.
 """
 from __future__ import annotations
 
@@ -47,6 +50,7 @@ class Track:
     fps: float
     intrinsics: np.ndarray
     tracker: str
+    init: dict[str, np.ndarray] | None = None
 
     @property
     def num_frames(self) -> int:
@@ -69,6 +73,7 @@ def save_track(track: Track, path: str | Path) -> Path:
                 fps=np.array(track.fps, dtype=np.float64),
                 intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
                 tracker=np.array(track.tracker),
+                **{f"init__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.init or {}).items()},
             )
         os.replace(tmp, path)
     except BaseException:
@@ -104,5 +109,10 @@ def load_track(path: str | Path) -> Track:
     conf = np.where(bad, 0.0, np.clip(np.nan_to_num(conf, nan=0.0), 0.0, 1.0)).astype(np.float32)
     kp = np.where(bad[..., None], np.nan, kp).astype(np.float32)
     intr = fields.get("intrinsics", np.full(4, np.nan, dtype=np.float32))
+    init = {k.removeprefix("init__"): v.astype(np.float32) for k, v in fields.items() if k.startswith("init__")}
+    for name, value in init.items():
+        if value.ndim != 2 or value.shape[0] != kp.shape[0] or not np.isfinite(value).all():
+            raise TrackError(f"track file {path}: initialisation {name!r} has shape {value.shape} or non-finite "
+                             f"values; expected ({kp.shape[0]}, D) finite")
     return Track(kp, conf, landmark_set, tuple(int(v) for v in fields["image_size"]), float(fields["fps"]),
-                 np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")))
+                 np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")), init or None)

@@ -1,0 +1,91 @@
+"""``m3t`` command line: the few things users should not have to remember Prefect's syntax for.
+
+    m3t params --preset paper [--write]   print (or write to params.yaml) a preset merged over params.yaml
+    m3t fit-corpus [--max-clips N]        run the fit-corpus flow once, locally (temporary Prefect server)
+    m3t serve [--port 4200]               start a Prefect server on 127.0.0.1 and serve the deployments;
+                                          then: prefect deployment run fit-corpus/embedded
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import yaml
+
+from m3t.experiment import disable_telemetry
+
+
+def _cmd_params(args: argparse.Namespace) -> int:
+    from m3t.config import load_params, to_dict
+
+    text = yaml.safe_dump(to_dict(load_params(args.params, preset=args.preset)), sort_keys=False)
+    if args.write:
+        tmp = Path(args.params).with_suffix(".yaml.tmp")
+        tmp.write_text(f"# preset: {args.preset}\n" + text)
+        os.replace(tmp, args.params)
+        print(f"wrote preset {args.preset!r} to {args.params}")
+    else:
+        print(text)
+    return 0
+
+
+def _cmd_fit_corpus(args: argparse.Namespace) -> int:
+    from flows.fit_corpus import fit_corpus
+
+    summary = fit_corpus(params_path=args.params, preset=args.preset, max_clips=args.max_clips)
+    print(summary)
+    return 0
+
+
+def _wait_for(url: str, seconds: float) -> None:
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        try:
+            with urllib.request.urlopen(url, timeout=2) as response:  # noqa: S310 - loopback only
+                if response.status == 200:
+                    return
+        except OSError:
+            time.sleep(1)
+    raise RuntimeError(f"Prefect server did not answer at {url} within {seconds:.0f} s")
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    api = f"http://127.0.0.1:{args.port}/api"
+    env = dict(os.environ, PREFECT_API_URL=api)
+    server = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(args.port)], env=env)
+    try:
+        _wait_for(f"{api}/health", 120)
+        print(f"Prefect UI: http://127.0.0.1:{args.port}  —  run: prefect deployment run fit-corpus/embedded")
+        return subprocess.call([sys.executable, "-m", "flows.deploy", "--params", args.params], env=env)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def main(argv: list[str] | None = None) -> int:
+    disable_telemetry()
+    parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("params", help="show or write a params preset")
+    p.add_argument("--preset", default="default")
+    p.add_argument("--write", action="store_true")
+    p.set_defaults(func=_cmd_params)
+    p = sub.add_parser("fit-corpus", help="run the fit-corpus flow once")
+    p.add_argument("--preset", default="default")
+    p.add_argument("--max-clips", type=int, default=-1)
+    p.set_defaults(func=_cmd_fit_corpus)
+    p = sub.add_parser("serve", help="Prefect server on 127.0.0.1 + deployments")
+    p.add_argument("--port", type=int, default=4200)
+    p.set_defaults(func=_cmd_serve)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""params.yaml -> frozen dataclasses, one per section, each owned by the component it configures.
+
+``load_params("params.yaml", preset="tiny")`` reads the file, overlays a preset from ``m3t/presets/``
+(``tiny`` for tests, ``paper`` for the papers' hyper-parameters; ``default`` is params.yaml itself), and
+checks every key and type: an unknown key or a wrong type stops with a message naming ``section.key`` and
+what is allowed. Components receive only their own section (``params.fitting``), never the whole tree.
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin
+
+import yaml
+
+from m3t.body.factory import BodyConfig
+from m3t.corpora.synthetic import SyntheticCorpusConfig
+from m3t.experiment import ExperimentConfig
+from m3t.fitting.fit import FittingConfig
+from m3t.stages.fit_corpus import FitCorpusConfig
+from m3t.trackers.simulated import SimulatedTrackerConfig
+
+PRESET_DIR = Path(__file__).parent / "presets"
+PRESETS = ("default", "tiny", "paper")
+
+
+class ConfigError(ValueError):
+    """A params file that does not match the dataclasses; the message names the key and the fix."""
+
+
+@dataclass(frozen=True)
+class Params:
+    corpus: SyntheticCorpusConfig
+    body: BodyConfig
+    tracker: SimulatedTrackerConfig
+    fitting: FittingConfig
+    fit_corpus: FitCorpusConfig
+    experiment: ExperimentConfig
+
+
+SECTIONS: dict[str, type] = {f.name: f.type for f in fields(Params)}
+_HINTS = typing.get_type_hints(Params)
+
+
+def _type_name(tp: Any) -> str:
+    if get_origin(tp) is Literal:
+        return "one of " + ", ".join(repr(a) for a in get_args(tp))
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check ``value`` against the annotation ``tp``; return it converted (lists -> tuples, int -> float)."""
+    origin = get_origin(tp)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"{where}: {value!r} is not allowed; expected {_type_name(tp)}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: {value!r} matches none of {[_type_name(a) for a in args]}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {type(value).__name__} {value!r}")
+        args = get_args(tp)
+        item_tp = args[0] if len(args) == 2 and args[1] is Ellipsis else None
+        if item_tp is None and len(args) != len(value):
+            raise ConfigError(f"{where}: expected {len(args)} items, got {len(value)}")
+        return tuple(
+            _coerce(v, item_tp if item_tp is not None else args[i], f"{where}[{i}]") for i, v in enumerate(value)
+        )
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {type(value).__name__} {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {type(value).__name__} {value!r}")
+        return value
+    if tp in (str, bool):
+        if not isinstance(value, tp):
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+        return value
+    raise ConfigError(f"{where}: unsupported annotation {tp!r}")  # a bug in a config class, not in the file
+
+
+def build_section(cls: type, values: dict | None, section: str) -> Any:
+    """Build one section's dataclass from a mapping, rejecting unknown keys and wrong types."""
+    values = values or {}
+    if not isinstance(values, dict):
+        raise ConfigError(f"{section}: expected a mapping of keys, got {type(values).__name__}")
+    hints = typing.get_type_hints(cls)
+    allowed = [f.name for f in fields(cls)]
+    unknown = sorted(set(values) - set(allowed))
+    if unknown:
+        raise ConfigError(f"unknown key(s) {', '.join(f'{section}.{k}' for k in unknown)}; allowed keys in '{section}': {', '.join(allowed)}")
+    kwargs = {k: _coerce(v, hints[k], f"{section}.{k}") for k, v in values.items()}
+    return cls(**kwargs)
+
+
+def merge(base: dict, overlay: dict) -> dict:
+    """Recursive dict merge; overlay wins."""
+    out = dict(base)
+    for key, value in overlay.items():
+        out[key] = merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def read_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"params file {path} not found; run from the repository root or pass its path")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at top level")
+    return data
+
+
+def preset_overlay(preset: str) -> dict:
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; allowed: {', '.join(PRESETS)}")
+    return {} if preset == "default" else read_yaml(PRESET_DIR / f"{preset}.yaml")
+
+
+def params_from_dict(raw: dict) -> Params:
+    unknown = sorted(set(raw) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown section(s) {', '.join(unknown)}; allowed sections: {', '.join(SECTIONS)}")
+    return Params(**{name: build_section(_HINTS[name], raw.get(name), name) for name in SECTIONS})
+
+
+def load_params(path: str | Path = "params.yaml", preset: str = "default", overrides: dict | None = None) -> Params:
+    """Read params.yaml, overlay a preset and optional overrides, and validate every section."""
+    raw = merge(merge(read_yaml(path), preset_overlay(preset)), overrides or {})
+    return params_from_dict(raw)
+
+
+def to_dict(obj: Any) -> Any:
+    """Plain dicts / lists of a Params or section dataclass, for YAML and MLflow."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in fields(obj)}
+    if isinstance(obj, tuple):
+        return [to_dict(x) for x in obj]
+    return obj
+
+
+def flat_params(params: Params) -> dict[str, Any]:
+    """``section.key -> value`` for logging."""
+    return {f"{section}.{key}": value for section, values in to_dict(params).items() for key, value in values.items()}

@@ -1,0 +1,89 @@
+"""The one place that talks to MLflow.
+
+Stages hand this module their params, metrics and artifact files; nothing else imports mlflow. The
+tracking URI is made absolute (``sqlite:///<abs path>``) so runs from ``dvc exp`` temp dirs, Prefect
+workers and tests all land in the same store. Telemetry is switched off before mlflow is imported.
+"""
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+TELEMETRY_OFF = {
+    "DO_NOT_TRACK": "true",
+    "MLFLOW_DISABLE_TELEMETRY": "true",
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    "DVC_NO_ANALYTICS": "1",
+}
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    tracking_uri: str = "sqlite:///mlflow.db"  # relative paths resolve against the repository root
+    artifact_dir: str = "mlruns"
+    experiment: str = "m3t"
+    enabled: bool = True
+
+
+def disable_telemetry() -> None:
+    for key, value in TELEMETRY_OFF.items():
+        os.environ.setdefault(key, value)
+
+
+def absolute_uri(uri: str, root: Path) -> str:
+    """``sqlite:///rel.db`` -> ``sqlite:////abs/rel.db``; plain paths -> ``file://`` URIs; others unchanged."""
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
+        return prefix + str((root / uri[len(prefix):]).resolve())
+    if "://" not in uri:
+        return (root / uri).resolve().as_uri()
+    return uri
+
+
+class Run:
+    """A thin handle over an active MLflow run (or a no-op when tracking is disabled)."""
+
+    def __init__(self, mlflow_module: Any | None):
+        self._mlflow = mlflow_module
+
+    @property
+    def run_id(self) -> str | None:
+        return self._mlflow.active_run().info.run_id if self._mlflow else None
+
+    def log_params(self, params: dict[str, Any]) -> None:
+        if self._mlflow:
+            self._mlflow.log_params({k: str(v)[:6000] for k, v in params.items()})
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        if self._mlflow:
+            finite = {k: float(v) for k, v in metrics.items() if v is not None and v == v}
+            self._mlflow.log_metrics(finite, step=step)
+
+    def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
+        if self._mlflow and Path(path).exists():
+            self._mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        if self._mlflow:
+            self._mlflow.set_tags(tags)
+
+
+@contextmanager
+def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: dict[str, str] | None = None) -> Iterator[Run]:
+    """Open an MLflow run named after the stage; yields a :class:`Run` (no-op if ``cfg.enabled`` is false)."""
+    if not cfg.enabled:
+        yield Run(None)
+        return
+    disable_telemetry()
+    import mlflow
+
+    root = Path(root)
+    mlflow.set_tracking_uri(absolute_uri(cfg.tracking_uri, root))
+    if mlflow.get_experiment_by_name(cfg.experiment) is None:
+        mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri())
+    mlflow.set_experiment(cfg.experiment)
+    with mlflow.start_run(run_name=stage, tags={"stage": stage, **(tags or {})}):
+        yield Run(mlflow)
