@@ -35,6 +35,7 @@ from m3t.shards.schema import FittedClip
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 from m3t.trackers.track import load_track, save_track
 
+STANDARD_SPLITS = ("train", "dev", "test")
 KEY_VERSION = "fit-v1"  # bump when fitting code changes in a way that invalidates cached results
 
 
@@ -211,7 +212,8 @@ def consolidate(outcomes: list[ClipOutcome], layout, cfg: FitCorpusConfig, wall_
     """Gather part files into one shard per split; write the quarantine report and summary."""
     out_dir = Path(cfg.shards_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    by_split: dict[str, list[FittedClip]] = {}
+    # Every standard split gets a shard (possibly empty), so downstream stages and DVC outputs always exist.
+    by_split: dict[str, list[FittedClip]] = {split: [] for split in STANDARD_SPLITS}
     for o in sorted(outcomes, key=lambda o: o.clip_id):
         if o.part is not None:
             by_split.setdefault(o.split, []).extend(read_shard(o.part).clips)

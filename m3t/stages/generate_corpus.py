@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> None:
     params = load_params(args.params, preset=args.preset)
     body = load_body_model(params.body)
     start = time.perf_counter()
-    clips = generate_corpus(params.corpus, body.layout, body.joint_names)
+    clips = generate_corpus(params.corpus, body)
     write_corpus(clips, args.out)
     splits: dict[str, int] = {}
     for c in clips:

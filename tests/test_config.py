@@ -1,0 +1,80 @@
+"""params.yaml -> frozen dataclasses: presets, unknown keys and wrong types stop with clear messages."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+from m3t.config import ConfigError, load_params, to_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = ROOT / "params.yaml"
+
+
+@pytest.mark.parametrize("preset", ["default", "tiny", "paper"])
+def test_presets_load(preset):
+    params = load_params(PARAMS, preset=preset)
+    assert params.fitting.w_kp == 1.0 and params.fitting.w_acc == 0.5 and params.fitting.w_reg == 0.01
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        params.fitting.iterations = 3  # type: ignore[misc]
+
+
+def test_presets_differ_where_they_should():
+    tiny, default, paper = (load_params(PARAMS, preset=p) for p in ("tiny", "default", "paper"))
+    assert tiny.fitting.iterations < default.fitting.iterations < paper.fitting.iterations
+    assert tiny.experiment.enabled is False
+
+
+def write(tmp_path, data):
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_unknown_key_names_section_and_allowed_keys(tmp_path):
+    data = yaml.safe_load(PARAMS.read_text())
+    data["fitting"]["iteration"] = 10
+    with pytest.raises(ConfigError, match=r"fitting\.iteration.*allowed keys in 'fitting'.*iterations"):
+        load_params(write(tmp_path, data))
+
+
+def test_unknown_section(tmp_path):
+    data = yaml.safe_load(PARAMS.read_text())
+    data["fiting"] = {}
+    with pytest.raises(ConfigError, match="fiting.*allowed sections"):
+        load_params(write(tmp_path, data))
+
+
+@pytest.mark.parametrize(
+    "section,key,value,message",
+    [
+        ("fitting", "iterations", "many", r"fitting\.iterations: expected an integer"),
+        ("fitting", "lr", True, r"fitting\.lr: expected a number"),
+        ("body", "model", "smplz", r"body\.model: 'smplz' is not allowed; expected one of 'anny', 'smplfx'"),
+        ("fit_corpus", "workers", 1.5, r"fit_corpus\.workers: expected an integer"),
+        ("experiment", "enabled", "yes", r"experiment\.enabled: expected bool"),
+    ],
+)
+def test_wrong_types(tmp_path, section, key, value, message):
+    data = yaml.safe_load(PARAMS.read_text())
+    data[section][key] = value
+    with pytest.raises(ConfigError, match=message):
+        load_params(write(tmp_path, data))
+
+
+def test_int_accepted_for_float_and_round_trip(tmp_path):
+    data = yaml.safe_load(PARAMS.read_text())
+    data["fitting"]["lr"] = 1
+    params = load_params(write(tmp_path, data))
+    assert params.fitting.lr == 1.0 and isinstance(params.fitting.lr, float)
+    again = load_params(write(tmp_path, to_dict(params)))
+    assert again == params
+
+
+def test_missing_file_and_unknown_preset(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_params(tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="unknown preset 'huge'"):
+        load_params(PARAMS, preset="huge")
