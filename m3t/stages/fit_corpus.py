@@ -162,6 +162,7 @@ def process_clip(clip: Clip, ctx: FitContext) -> ClipOutcome:
             fitted = read_shard(part).clips[0]
             return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics, frames=fitted.num_frames)
         fitted = fit_clip(clip, track_path, key, ctx)
+        part.parent.mkdir(parents=True, exist_ok=True)
         write_shard(part, [fitted], ctx.body.layout)
         return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
                            frames=fitted.num_frames, seconds=time.perf_counter() - start)
