@@ -33,7 +33,7 @@ import numpy as np
 import roma
 import torch
 
-from m3t.body.protocol import BodyModel
+from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
 from m3t.camera import Camera, look_at
 from m3t.corpora.clip import Clip
@@ -148,7 +148,9 @@ def _arm_ik(body: BodyModel, rest: dict[str, torch.Tensor], targets: np.ndarray,
     """Right-arm rotvecs (N, 4, 3) placing the middle knuckle at each target (N, 3); elbow kept low."""
     n = targets.shape[0]
     arm_idx = [body.layout["body"].labels.index(f"{b}.R") for b in ARM]
-    knuckle, elbow = _joint(body, "finger3-1.R"), _joint(body, "lowerarm01.R")
+    # Only two joints matter: a joint-only sparse forward keeps the IK cheap.
+    points = body.keypoint_set(Correspondence(("knuckle", "elbow"), np.ones(2, dtype=np.int64),
+                                              np.array([_joint(body, "finger3-1.R"), _joint(body, "lowerarm01.R")])))
     rot = torch.zeros(n, 4, 3, requires_grad=True)
     goal = torch.as_tensor(targets, dtype=torch.float32)
     opt = torch.optim.Adam([rot], lr=0.05)
@@ -158,9 +160,9 @@ def _arm_ik(body: BodyModel, rest: dict[str, torch.Tensor], targets: np.ndarray,
         opt.zero_grad()
         body_rv = zeros["body"].clone()
         body_rv[:, arm_idx] = rot
-        joints = body.forward(_to_params({**zeros, "body": body_rv}, face, rest), body.default_identity()).joints
-        loss = ((joints[:, knuckle] - goal) ** 2).sum(-1).mean() * 100
-        loss = loss + 0.002 * (rot ** 2).sum((-1, -2)).mean() + 0.5 * torch.relu(joints[:, elbow, 1] - 0.05).mean()
+        joints = body.forward_keypoints(_to_params({**zeros, "body": body_rv}, face, rest), body.default_identity(), points)
+        loss = ((joints[:, 0] - goal) ** 2).sum(-1).mean() * 100
+        loss = loss + 0.002 * (rot ** 2).sum((-1, -2)).mean() + 0.5 * torch.relu(joints[:, 1, 1] - 0.05).mean()
         loss.backward()
         opt.step()
     return rot.detach().numpy()
