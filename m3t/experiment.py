@@ -87,3 +87,34 @@ def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: d
     mlflow.set_experiment(cfg.experiment)
     with mlflow.start_run(run_name=stage, tags={"stage": stage, **(tags or {})}):
         yield Run(mlflow)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    run_id: str
+    stage: str
+    start_time: int  # ms since epoch
+    status: str
+    params: dict[str, str]
+    metrics: dict[str, float]
+    artifact_dir: Path | None  # local artifact folder when the store is on this machine
+
+
+def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None = None) -> list[RunRecord]:
+    """Runs of the experiment, newest first (optionally one stage only), for dashboards and tables."""
+    disable_telemetry()
+    from mlflow.tracking import MlflowClient
+    from urllib.parse import unquote, urlparse
+
+    client = MlflowClient(tracking_uri=absolute_uri(cfg.tracking_uri, Path(root)))
+    experiment = client.get_experiment_by_name(cfg.experiment)
+    if experiment is None:
+        return []
+    query = f"tags.stage = '{stage}'" if stage else ""
+    records = []
+    for run in client.search_runs([experiment.experiment_id], filter_string=query, order_by=["attributes.start_time DESC"]):
+        uri = urlparse(run.info.artifact_uri)
+        local = Path(unquote(uri.path)) if uri.scheme in ("", "file") else None
+        records.append(RunRecord(run.info.run_id, run.data.tags.get("stage", run.info.run_name or ""), run.info.start_time,
+                                 run.info.status, dict(run.data.params), dict(run.data.metrics), local))
+    return records

@@ -11,6 +11,8 @@ modality m, P identity dim.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,24 +84,9 @@ class MotionBatch:
 
 
 def _metadata(fitted: FittedClip, shard: Path) -> dict[str, Any]:
-    c = fitted.clip
-    return {
-        "corpus": c.corpus,
-        "split": c.split,
-        "language": c.language,
-        "signer": c.signer,
-        "text": c.text,
-        "gloss": c.gloss,
-        "media": c.media,
-        "fps": c.fps,
-        "label": c.label,
-        "extra": dict(c.extra),
-        "key": fitted.key,
-        "body_model": fitted.body_model,
-        "camera": fitted.camera,
-        "metrics": fitted.metrics,
-        "shard": str(shard),
-    }
+    clip = {f.name: getattr(fitted.clip, f.name) for f in dataclasses.fields(fitted.clip) if f.name != "id"}
+    return {**clip, "extra": dict(fitted.clip.extra), "key": fitted.key, "body_model": fitted.body_model,
+            "camera": fitted.camera, "metrics": fitted.metrics, "shard": str(shard)}
 
 
 class ShardDataset(Dataset):

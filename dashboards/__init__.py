@@ -1,0 +1,1 @@
+"""Project dashboard over the MLflow store."""
