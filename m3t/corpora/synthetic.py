@@ -38,7 +38,7 @@ from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
 from m3t.camera import Camera, look_at
 from m3t.corpora.clip import Clip
 from m3t.corpora.synthetic_lexicon import (
-    BROWS, CONCEPTS, EYES, HANDSHAPES, LANGUAGES, LOCATIONS, VISEMES, SignForm, build_lexicon, make_sentence,
+    BROWS, CONCEPTS, EYES, HANDSHAPES, LANGUAGES, VISEMES, SignForm, build_lexicon, make_sentence,
 )
 
 SPLIT_CYCLE = ("train", "dev", "test") + ("train",) * 7  # 80 / 10 / 10, every split non-empty from 3 clips

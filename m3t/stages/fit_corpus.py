@@ -20,7 +20,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Literal
+from typing import Callable, Iterable, Iterator, Literal
 
 import numpy as np
 import torch
@@ -234,13 +234,37 @@ _WORKER_CTX: FitContext | None = None
 
 def _worker_init(ctx: FitContext) -> None:
     global _WORKER_CTX
-    torch.set_num_threads(1)
+    torch.set_num_threads(1)  # one process per core; intra-op threads would oversubscribe
     _WORKER_CTX = ctx
 
 
 def _worker_process(clip: Clip) -> ClipOutcome:
     assert _WORKER_CTX is not None
     return process_clip(clip, _WORKER_CTX)
+
+
+def _outcomes(ctx: FitContext, clips: list[Clip]) -> Iterator[ClipOutcome]:
+    """Outcomes in completion order, from this process or from ``cfg.workers`` worker processes."""
+    if ctx.cfg.workers <= 1:
+        yield from (process_clip(c, ctx) for c in clips)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    worker_ctx = FitContext(ctx.cfg, ctx.body_cfg, ctx.tracker_cfg, ctx.fitting_cfg)  # workers build their own model
+    with ProcessPoolExecutor(ctx.cfg.workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                             initargs=(worker_ctx,)) as pool:
+        futures = [pool.submit(_worker_process, c) for c in clips]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        except BrokenProcessPool as exc:
+            raise RuntimeError("a fit-corpus worker process died (out of memory or killed); finished clips are "
+                               "cached, rerun to resume") from exc
+        finally:
+            for future in futures:
+                future.cancel()
 
 
 def run_fit_corpus(
@@ -255,26 +279,13 @@ def run_fit_corpus(
     clips = list(clips) if clips is not None else list_clips(ctx.cfg)
     start = time.perf_counter()
     outcomes: list[ClipOutcome] = []
-    bar = tqdm(total=len(clips), desc="fit-corpus", unit="clip", disable=not progress)
-    if ctx.cfg.workers <= 1:
-        results: Iterable[ClipOutcome] = (process_clip(c, ctx) for c in clips)
-        pool = None
-    else:
-        import multiprocessing as mp
-
-        pool = mp.get_context("spawn").Pool(ctx.cfg.workers, initializer=_worker_init, initargs=(ctx,))
-        results = pool.imap_unordered(_worker_process, clips)
-    try:
-        for outcome in results:
+    with tqdm(total=len(clips), desc="fit-corpus", unit="clip", disable=not progress) as bar:
+        for outcome in _outcomes(ctx, clips):
             outcomes.append(outcome)
             bar.update(1)
             bar.set_postfix(status=outcome.status, quarantined=sum(o.status == "quarantined" for o in outcomes))
             if on_outcome is not None:
                 on_outcome(outcome)
-    finally:
-        bar.close()
-        if pool is not None:
-            pool.terminate()
     return consolidate(outcomes, ctx.body.layout, ctx.cfg, time.perf_counter() - start)
 
 
