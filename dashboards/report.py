@@ -20,7 +20,7 @@ from m3t.experiment import RunRecord, fetch_runs
 
 KEY_METRICS = {
     "fit-corpus": ["clips_fitted", "clips_cached", "clips_quarantined", "reproj_px_mean", "joint_mm_mean",
-                   "pa_joint_mm_mean", "init_pa_joint_mm_mean", "fit_frames_per_s", "wall_seconds"],
+                   "pa_joint_mm_mean", "init_pa_joint_mm_mean", "fit_frames_per_s_wall", "wall_seconds"],
 }
 
 

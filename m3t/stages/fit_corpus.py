@@ -198,7 +198,9 @@ def summarise(outcomes: list[ClipOutcome], wall_seconds: float) -> dict[str, flo
         "clips_quarantined": sum(o.status == "quarantined" for o in outcomes),
         "frames": sum(o.frames for o in done),
         "wall_seconds": wall_seconds,
-        "fit_frames_per_s": (sum(o.frames for o in fitted) / sum(o.seconds for o in fitted)) if fitted else math.nan,
+        # per worker process (frames / seconds spent fitting) and for the whole run (frames / wall time)
+        "fit_frames_per_s_per_worker": (sum(o.frames for o in fitted) / sum(o.seconds for o in fitted)) if fitted else math.nan,
+        "fit_frames_per_s_wall": sum(o.frames for o in fitted) / wall_seconds if fitted and wall_seconds > 0 else math.nan,
     }
     keys = sorted({k for o in done for k in o.metrics})
     for key in keys:
