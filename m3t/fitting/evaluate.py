@@ -25,7 +25,8 @@ def metric_joints(body: BodyModel) -> Correspondence:
     return Correspondence(tuple(names), np.ones(len(names), dtype=np.int64), index)
 
 
-def _as_tensors(params: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+def as_tensors(params: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """numpy (T, D) per modality -> float32 tensors."""
     return {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
 
 
@@ -39,7 +40,7 @@ def procrustes_error_mm(pred: torch.Tensor, truth: torch.Tensor) -> float:
 def joints_for(body: BodyModel, params: dict[str, np.ndarray], identity: np.ndarray) -> torch.Tensor:
     """(T, J, 3) metric joints of a parameter sequence."""
     kp = body.keypoint_set(metric_joints(body))
-    return body.forward_keypoints(_as_tensors(params), torch.as_tensor(identity, dtype=torch.float32), kp)
+    return body.forward_keypoints(as_tensors(params), torch.as_tensor(identity, dtype=torch.float32), kp)
 
 
 def _camera_frame(joints: torch.Tensor, camera: dict) -> torch.Tensor:

@@ -102,12 +102,12 @@ def fit_track(
     correspondence = correspondence or body.correspondence(track.landmark_set)
     kpset = body.keypoint_set(correspondence)
     target = torch.as_tensor(np.nan_to_num(track.keypoints, nan=0.0), device=device)
-    conf = torch.as_tensor(track.confidence, device=device) * torch.as_tensor(correspondence.valid, device=device)
+    valid = torch.as_tensor(correspondence.valid, device=device)
+    conf = torch.as_tensor(track.confidence, device=device) * valid
     if float(conf.sum()) == 0:
         raise ValueError("the track has no visible landmark with a body-model correspondence in any frame")
     intrinsics = _intrinsics(track, cfg).to(device)
     parts = list(landmark_slices(track.landmark_set).values())
-    valid = torch.as_tensor(correspondence.valid, device=device)
 
     if track.init is not None:
         init = {k: torch.as_tensor(track.init[k], device=device) for k in layout.names}

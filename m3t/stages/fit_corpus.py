@@ -28,7 +28,7 @@ import torch
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.corpora.clip import Clip
-from m3t.fitting.evaluate import ground_truth_errors, joints_for, procrustes_error_mm
+from m3t.fitting.evaluate import as_tensors, ground_truth_errors, joints_for, procrustes_error_mm
 from m3t.fitting.fit import FittingConfig, fit_track
 from m3t.shards.io import read_shard, write_shard
 from m3t.shards.schema import FittedClip
@@ -111,10 +111,6 @@ class FitContext:
         return self._corpus
 
 
-def _tensors(params: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    return {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
-
-
 def track_clip(clip: Clip, ctx: FitContext) -> Path:
     """Simulated tracking of a synthetic clip, cached by (motion file, tracker config, body model)."""
     media = Path(ctx.cfg.corpus_dir) / clip.media
@@ -124,7 +120,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
     path = Path(ctx.cfg.cache_dir) / "tracks" / f"{clip.id}-{key}.npz"
     if not path.exists():
         params, identity, camera = ctx.corpus.ground_truth(clip)
-        track = simulate_track(clip.id, _tensors(params), torch.as_tensor(identity), camera, clip.fps, ctx.body, ctx.tracker_cfg)
+        track = simulate_track(clip.id, as_tensors(params), torch.as_tensor(identity), camera, clip.fps, ctx.body, ctx.tracker_cfg)
         save_track(track, path)
     return path
 
