@@ -21,6 +21,8 @@ from m3t.corpora.synthetic import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
 from m3t.fitting.fit import FittingConfig
 from m3t.stages.fit_corpus import FitCorpusConfig
+from m3t.stages.tokenize import TokenizeConfig
+from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig
 from m3t.trackers.simulated import SimulatedTrackerConfig
 
 PRESET_DIR = Path(__file__).parent / "presets"
@@ -39,6 +41,9 @@ class Params:
     fitting: FittingConfig
     fit_corpus: FitCorpusConfig
     experiment: ExperimentConfig
+    tokenizer: TokenizerConfig
+    tokenizer_train: TokenizerTrainConfig
+    tokenize: TokenizeConfig
 
 
 SECTIONS: dict[str, type] = {f.name: f.type for f in fields(Params)}

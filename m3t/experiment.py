@@ -43,6 +43,12 @@ def absolute_uri(uri: str, root: Path) -> str:
     return uri
 
 
+def tracking_uri(cfg: ExperimentConfig, root: Path) -> str:
+    """``MLFLOW_TRACKING_URI`` when set (how ``dvc exp run --temp`` copies reach the workspace's store), else
+    the configured URI made absolute against ``root``."""
+    return os.environ.get("MLFLOW_TRACKING_URI") or absolute_uri(cfg.tracking_uri, root)
+
+
 class Run:
     """A thin handle over an active MLflow run (or a no-op when tracking is disabled)."""
 
@@ -81,7 +87,7 @@ def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: d
     import mlflow
 
     root = Path(root)
-    mlflow.set_tracking_uri(absolute_uri(cfg.tracking_uri, root))
+    mlflow.set_tracking_uri(tracking_uri(cfg, root))
     if mlflow.get_experiment_by_name(cfg.experiment) is None:
         mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri())
     mlflow.set_experiment(cfg.experiment)
@@ -106,7 +112,7 @@ def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None 
     from mlflow.tracking import MlflowClient
     from urllib.parse import unquote, urlparse
 
-    client = MlflowClient(tracking_uri=absolute_uri(cfg.tracking_uri, Path(root)))
+    client = MlflowClient(tracking_uri=tracking_uri(cfg, Path(root)))
     experiment = client.get_experiment_by_name(cfg.experiment)
     if experiment is None:
         return []

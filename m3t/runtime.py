@@ -12,3 +12,42 @@ def choose_device(name: str = "auto") -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device {name!r} requested but no CUDA device is visible; use 'cpu' or 'auto'")
     return device
+
+
+def autocast(device: torch.device, precision: str):
+    """bf16 autocast when ``precision == 'bf16'`` (CUDA or CPU), else a no-op context."""
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision {precision!r} unknown; allowed: fp32, bf16")
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+class DistributedContext:
+    """Rank / world size of this process; world size 1 unless started by ``torchrun`` (or a test) with
+    ``init_process_group``. NCCL on CUDA, gloo on CPU."""
+
+    def __init__(self, rank: int = 0, world_size: int = 1, device: torch.device | None = None):
+        self.rank, self.world_size = rank, world_size
+        self.device = device or torch.device("cpu")
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def distributed_context(device_name: str = "auto") -> DistributedContext:
+    """Join the process group described by ``torchrun``'s environment (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_*);
+    a single-process context when those are absent."""
+    import os
+
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistributedContext(device=choose_device(device_name))
+    device = choose_device(device_name)
+    if device.type == "cuda":
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return DistributedContext(dist.get_rank(), dist.get_world_size(), device)

@@ -30,10 +30,15 @@ def skeleton_edges(body: BodyModel, correspondence: Correspondence) -> list[tupl
 
 
 @torch.no_grad()
-def _project_joints(body: BodyModel, params: dict, identity: np.ndarray, camera: dict) -> np.ndarray:
-    points = joints_for(body, params, identity)
+def project_points(points: torch.Tensor, camera: dict) -> np.ndarray:
+    """(T, K, 3) world points -> (T, K, 2) pixels through a stored camera."""
     rot, trans, intr = camera_tensors(Camera.from_dict(camera))
-    return project(points, rot, trans, intr).numpy()  # (T, J, 2)
+    return project(points, rot, trans, intr).numpy()
+
+
+@torch.no_grad()
+def _project_joints(body: BodyModel, params: dict, identity: np.ndarray, camera: dict) -> np.ndarray:
+    return project_points(joints_for(body, params, identity), camera)  # (T, J, 2)
 
 
 def render_fit_comparison(

@@ -20,7 +20,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from m3t.body.protocol import ModalityLayout
-from m3t.corpora.clip import Clip
 from m3t.shards.schema import (
     IDENTITY_COLUMN,
     METADATA_COLUMNS,
@@ -28,8 +27,8 @@ from m3t.shards.schema import (
     ShardFormatError,
     arrow_schema,
     check_schema_metadata,
+    clip_from_columns,
     clip_metadata,
-    extra_from_json,
     metrics_from_json,
 )
 
@@ -150,8 +149,12 @@ def write_shard(path: str | os.PathLike, clips: Sequence[FittedClip], layout: Mo
     destination directory, is flushed to disk and then moved over ``path``; on any error the temporary
     file is removed and an existing ``path`` is left untouched.
     """
+    return write_table_atomic(path, to_table(clips, layout))
+
+
+def write_table_atomic(path: str | os.PathLike, table: pa.Table) -> Path:
+    """Write an Arrow table to Parquet at ``path`` through a temporary file + rename (shared by all shards)."""
     path = Path(path)
-    table = to_table(clips, layout)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write shard {path}: directory {path.parent} does not exist; create it first")
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
@@ -168,7 +171,7 @@ def write_shard(path: str | os.PathLike, clips: Sequence[FittedClip], layout: Mo
     return path
 
 
-def _parquet_file(path: Path) -> pq.ParquetFile:
+def parquet_file(path: Path) -> pq.ParquetFile:
     if not path.is_file():
         raise FileNotFoundError(f"shard {path} does not exist")
     try:
@@ -180,7 +183,7 @@ def _parquet_file(path: Path) -> pq.ParquetFile:
 def shard_layout(path: str | os.PathLike) -> ModalityLayout:
     """The modality layout stored in a shard's metadata (checks the schema version; reads no rows)."""
     path = Path(path)
-    return check_schema_metadata(_parquet_file(path).schema_arrow.metadata, str(path))
+    return check_schema_metadata(parquet_file(path).schema_arrow.metadata, str(path))
 
 
 def _unstack_modality(column: pa.ChunkedArray, dim: int, lengths: np.ndarray, source: str, name: str):
@@ -216,7 +219,7 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     """
     path = Path(path)
     source = str(path)
-    pf = _parquet_file(path)
+    pf = parquet_file(path)
     layout = check_schema_metadata(pf.schema_arrow.metadata, source)
     names = list(layout.names if modalities is None else modalities)
     for name in names:
@@ -234,19 +237,7 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     }
     clips = []
     for i in range(n):
-        clip = Clip(
-            id=meta["id"][i],
-            corpus=meta["corpus"][i],
-            split=meta["split"][i],
-            language=meta["language"][i],
-            signer=meta["signer"][i],
-            text=meta["text"][i],
-            gloss=meta["gloss"][i],
-            media=meta["media"][i],
-            fps=meta["fps"][i],
-            label=meta["label"][i],
-            extra=extra_from_json(meta["extra"][i]),
-        )
+        clip = clip_from_columns(meta, i)
         clips.append(
             FittedClip(
                 clip=clip,

@@ -196,9 +196,12 @@ def extra_from_json(text: str) -> tuple[tuple[str, str], ...]:
     return tuple((str(k), str(v)) for k, v in json.loads(text))
 
 
-def clip_metadata(clip: FittedClip) -> dict[str, Any]:
-    """The metadata columns of one shard row (JSON fields already encoded)."""
-    c = clip.clip
+CLIP_COLUMNS = ("id", "corpus", "split", "language", "signer", "text", "gloss", "media", "fps", "label", "extra")
+"""The metadata columns that hold the :class:`Clip` record (shared by fitted and token shards)."""
+
+
+def clip_record(c: Clip) -> dict[str, Any]:
+    """The :data:`CLIP_COLUMNS` values of one clip (``extra`` JSON-encoded)."""
     return {
         "id": c.id,
         "corpus": c.corpus,
@@ -211,6 +214,20 @@ def clip_metadata(clip: FittedClip) -> dict[str, Any]:
         "fps": float(c.fps),
         "label": None if c.label is None else int(c.label),
         "extra": extra_to_json(c.extra),
+    }
+
+
+def clip_from_columns(columns: dict[str, list], row: int) -> Clip:
+    """Inverse of :func:`clip_record` for row ``row`` of column lists."""
+    values = {name: columns[name][row] for name in CLIP_COLUMNS}
+    values["extra"] = extra_from_json(values["extra"])
+    return Clip(**values)
+
+
+def clip_metadata(clip: FittedClip) -> dict[str, Any]:
+    """The metadata columns of one shard row (JSON fields already encoded)."""
+    return {
+        **clip_record(clip.clip),
         "key": clip.key,
         "body_model": clip.body_model,
         "num_frames": clip.num_frames,

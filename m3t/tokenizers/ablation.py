@@ -1,0 +1,67 @@
+"""The quantisation ablation (M3T Tab. 3): a ``dvc exp`` sweep and the table printed from MLflow.
+
+The sweep follows the paper's design around a base setting (batch 16, the configured width): VQ vs FSQ,
+then FSQ over batch sizes, then FSQ over widths (``full=True``: the whole grid). Each setting is one
+``dvc exp run --temp -S ...`` (a temporary copy of the workspace, so ``params.yaml`` is left alone); the
+runs log to the MLflow store of the workspace through ``MLFLOW_TRACKING_URI``.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Iterable
+
+from m3t.experiment import RunRecord
+
+CPU_WIDTHS = (32, 64, 128)
+PAPER_WIDTHS = (512, 1024, 2048)
+BATCH_SIZES = (16, 32, 64, 128)
+GROUPS = ("body", "hand", "face")
+
+
+def sweep_settings(base_width: int, widths: Iterable[int] = CPU_WIDTHS, batch_sizes: Iterable[int] = BATCH_SIZES,
+                   quantizers: Iterable[str] = ("fsq", "vq"), base_batch: int = 16, full: bool = False) -> list[dict]:
+    """Settings as ``{"tokenizer.quantizer": ..., "tokenizer_train.batch_size": ..., "tokenizer.width": ...}``."""
+    def setting(q: str, bs: int, w: int) -> dict:
+        return {"tokenizer.quantizer": q, "tokenizer_train.batch_size": bs, "tokenizer.width": w}
+
+    if full:
+        return [setting(q, b, w) for q, b, w in itertools.product(quantizers, batch_sizes, widths)]
+    out = [setting(q, base_batch, base_width) for q in quantizers]
+    out += [setting("fsq", b, base_width) for b in batch_sizes if b != base_batch]
+    out += [setting("fsq", base_batch, w) for w in widths if w != base_width]
+    return out
+
+
+def dvc_command(setting: dict, stage: str = "train-tokenizers") -> list[str]:
+    args = ["dvc", "exp", "run", "--temp", stage]
+    for key, value in setting.items():
+        args += ["-S", f"{key}={value}"]
+    return args
+
+
+def _fmt(value: float | None, digits: int) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def ablation_table(records: list[RunRecord]) -> str:
+    """Markdown table: one row per (quantizer, batch size, width), newest finished run; columns test PA-VPE
+    (mm) and codebook utilisation (%) per group."""
+    rows: dict[tuple, RunRecord] = {}
+    for record in records:  # newest first
+        if record.status != "FINISHED":
+            continue
+        key = (record.params.get("tokenizer.quantizer", "?"), int(record.params.get("tokenizer_train.batch_size", 0)),
+               int(record.params.get("tokenizer.width", 0)))
+        rows.setdefault(key, record)
+    header = ("| Q | BS | HS | " + " | ".join(f"PA-VPE {g} (mm)" for g in GROUPS) + " | "
+              + " | ".join(f"util {g} %" for g in GROUPS) + " | " + " | ".join(f"count SD {g}" for g in GROUPS) + " |")
+    lines = [header, "|" + "---|" * (3 + 3 * len(GROUPS))]
+    for (q, bs, hs), record in sorted(rows.items(), key=lambda kv: (kv[0][0] != "vq", kv[0][1], kv[0][2])):
+        m = record.metrics
+        cells = [q.upper(), str(bs), str(hs)]
+        cells += [_fmt(m.get(f"{g}/test_pa_vpe_mm"), 2) for g in GROUPS]
+        cells += [_fmt(m.get(f"{g}/utilisation_pct"), 1) for g in GROUPS]
+        cells += [_fmt(m.get(f"{g}/count_sd"), 1) for g in GROUPS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)

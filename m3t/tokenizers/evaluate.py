@@ -1,0 +1,91 @@
+"""Tokenise / reconstruct whole clips and measure a tokenizer: vertex errors through the body model and
+codebook statistics.
+
+:class:`ReconstructionProbe` holds validation clips and, per stream, the vertex region that stream moves
+(:mod:`m3t.metrics.vertices`); :meth:`ReconstructionProbe.measure` reconstructs each stream of each clip
+with the tokenizer (other streams kept), runs the body model and returns VPE / PA-VPE in mm plus the
+parameter L2 error. Checkpoints are selected on ``vpe_mm`` (vertex error, App. 0.D.1).
+
+Axis legend: T frames, D stream dim, N tokens, P identity dim.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from m3t.body.protocol import BodyModel
+from m3t.metrics.vertices import region_keypoints, region_vertices, stream_vertex_region, vertex_errors_mm
+from m3t.shards.schema import FittedClip
+from m3t.tokenizers.data import GROUPS, from_canonical, pad_to_multiple, to_canonical
+from m3t.tokenizers.vae import MotionTokenizer
+
+
+def _padded(model: MotionTokenizer, values: torch.Tensor) -> torch.Tensor:
+    down = model.cfg.downsample
+    return pad_to_multiple(values[None].float(), down, minimum=down)
+
+
+@torch.no_grad()
+def encode_clip(model: MotionTokenizer, values: np.ndarray | torch.Tensor) -> np.ndarray:
+    """(T, D) canonical parameters -> (ceil(T / downsample),) int64 tokens (short clips are edge-padded)."""
+    x = _padded(model, torch.as_tensor(values)).to(model.mean.device)
+    return model.encode(x)[0].cpu().numpy()
+
+
+@torch.no_grad()
+def reconstruct_clip(model: MotionTokenizer, values: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """(T, D) canonical parameters -> (T, D) reconstruction through the quantiser."""
+    values = torch.as_tensor(values)
+    x = _padded(model, values).to(model.mean.device)
+    return model(x).recon[0, : values.shape[0]].float().cpu()
+
+
+@dataclass
+class ReconstructionProbe:
+    """Validation clips + per-stream vertex regions, measured after every evaluation epoch."""
+
+    body: BodyModel
+    group: str
+    clips: Sequence[FittedClip]
+    max_frames: int = 2000
+
+    def __post_init__(self) -> None:
+        self.streams = GROUPS[self.group]
+        frames, clips = 0, []
+        for clip in self.clips:  # cap the work per evaluation; clips are taken in order
+            if frames >= self.max_frames:
+                break
+            clips.append(clip)
+            frames += clip.num_frames
+        self.clips = clips
+        self.keypoints, self._inputs = {}, []
+        for stream in self.streams:
+            self.keypoints[stream.modality] = region_keypoints(self.body, stream_vertex_region(self.body, stream.modality))
+        for clip in self.clips:  # reference vertices are computed once, not at every evaluation
+            params = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in clip.params.items()}
+            identity = torch.as_tensor(np.asarray(clip.identity), dtype=torch.float32)
+            truth = {s.modality: region_vertices(self.body, params, identity, self.keypoints[s.modality]) for s in self.streams}
+            self._inputs.append((params, identity, truth))
+
+    @torch.no_grad()
+    def measure(self, model: MotionTokenizer) -> dict[str, float]:
+        """Frame-weighted means over the clips and streams: ``vpe_mm``, ``pa_vpe_mm``, ``param_l2``."""
+        if not self.clips:
+            return {}
+        was_training = model.training
+        model.eval()
+        sums: dict[str, list[tuple[float, int]]] = {}
+        for params, identity, truth in self._inputs:
+            for stream in self.streams:
+                values = params[stream.modality]
+                recon = from_canonical(reconstruct_clip(model, to_canonical(values, stream)), stream)
+                pred = region_vertices(self.body, {**params, stream.modality: recon}, identity, self.keypoints[stream.modality])
+                errors = vertex_errors_mm(pred, truth[stream.modality])
+                errors["param_l2"] = float((recon - values).pow(2).sum(-1).sqrt().mean())
+                for key, value in errors.items():
+                    sums.setdefault(key, []).append((value, values.shape[0]))
+        model.train(was_training)
+        return {k: float(np.average([v for v, _ in pairs], weights=[w for _, w in pairs])) for k, pairs in sums.items()}

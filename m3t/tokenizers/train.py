@@ -1,0 +1,209 @@
+"""Training one modality group's tokenizer (M3T App. 0.D.1): Adam, linear warm-up then cosine decay to a
+floor, L2 reconstruction on the parameters (Eq. 6; plus the commitment term for the VQ baseline), the
+checkpoint with the lowest validation vertex error kept as ``best``, and a resumable ``last`` checkpoint
+written after every epoch (a rerun with the same config and data continues the same loss curve).
+
+GPU paths live here too: device from :func:`m3t.runtime.choose_device`, optional bf16 autocast, and DDP
+when launched by ``torchrun`` (:func:`m3t.runtime.distributed_context`); rank 0 evaluates, logs and saves.
+
+Axis legend: B batch, W window frames, D group dim.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+import torch
+from torch.nn.parallel import DistributedDataParallel
+
+from m3t.runtime import DistributedContext, autocast, choose_device
+from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
+from m3t.tokenizers.data import WindowSampler, normalisation
+from m3t.tokenizers.evaluate import ReconstructionProbe
+from m3t.tokenizers.vae import MotionTokenizer, VAEConfig
+
+
+TRAIN_VERSION = "tok-v2"  # part of the resume key: bump when a change makes older training state invalid
+
+
+@dataclass(frozen=True)
+class TokenizerConfig:
+    """``tokenizer`` section: the architecture shared by the three groups (App. 0.D.1) and the quantiser."""
+
+    quantizer: Literal["fsq", "vq"] = "fsq"
+    width: int = 1024
+    depth: int = 6
+    down_stages: int = 2
+    dilation_growth: int = 3
+    levels_body: tuple[int, ...] = (5, 5, 4)
+    levels_hand: tuple[int, ...] = (6, 6, 5)
+    levels_face: tuple[int, ...] = (6, 6, 6)
+    vq_code_dim: int = 512
+    vq_decay: float = 0.99
+    vq_beta: float = 0.02
+
+    def vae_config(self, group: str, input_dim: int) -> VAEConfig:
+        levels = {"body": self.levels_body, "hand": self.levels_hand, "face": self.levels_face}[group]
+        return VAEConfig(input_dim=input_dim, levels=levels, quantizer=self.quantizer, width=self.width,
+                         depth=self.depth, down_stages=self.down_stages, dilation_growth=self.dilation_growth,
+                         vq_code_dim=self.vq_code_dim, vq_decay=self.vq_decay, vq_beta=self.vq_beta)
+
+
+@dataclass(frozen=True)
+class TokenizerTrainConfig:
+    """``tokenizer_train`` section (paper: Adam 1e-4, 100 epochs, batch 8, 25 warm-up epochs, floor 1e-6)."""
+
+    shards_dir: str = "data/shards/synthetic"
+    out_dir: str = "models/tokenizers"
+    cache_dir: str = ".cache/tokenizers"
+    groups: tuple[str, ...] = ("body", "hand", "face")
+    extra_face_shards: tuple[str, ...] = ()  # face-only shards (e.g. MEAD) added to the face training set
+    epochs: int = 100
+    warmup_epochs: int = 25
+    lr: float = 1e-4
+    min_lr: float = 1e-6
+    batch_size: int = 8
+    window: int = 64
+    windows_per_clip: int = 1
+    eval_every: int = 1
+    val_max_frames: int = 2000
+    seed: int = 0
+    device: str = "auto"
+    precision: Literal["fp32", "bf16"] = "fp32"
+
+
+@dataclass
+class TrainResult:
+    """best_path / last_path: the selected and the resumable checkpoint (both under the cache dir)."""
+
+    group: str
+    best_path: Path
+    last_path: Path
+    history: list[dict[str, float]] = field(default_factory=list)
+    best: dict[str, float] = field(default_factory=dict)
+    resumed_from_epoch: int = 0
+
+
+def lr_factor(step: int, warmup_steps: int, total_steps: int, floor: float) -> float:
+    """Multiplier of the base LR: linear warm-up to 1, then cosine to ``floor`` (= min_lr / lr)."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def masked_mse(recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over real frames only. recon/target (B, W, D), mask (B, W) bool."""
+    weight = mask.unsqueeze(-1).to(recon.dtype)
+    return ((recon - target).pow(2) * weight).sum() / (weight.sum() * recon.shape[-1]).clamp_min(1.0)
+
+
+def train_step(model: torch.nn.Module, batch: tuple[torch.Tensor, torch.Tensor], optim: torch.optim.Optimizer,
+               scheduler: torch.optim.lr_scheduler.LRScheduler, precision: str = "fp32") -> dict[str, float]:
+    x, mask = batch
+    with autocast(x.device, precision):
+        out = model(x)
+    # Eq. 6 on standardised parameters: every dim counts on the scale of its own variation (as MotionGPT),
+    # otherwise low-variance streams (finger 6D entries, expression coefficients) barely contribute.
+    std = getattr(model, "module", model).std
+    recon = masked_mse(out.recon.float() / std, x / std, mask)
+    loss = recon + out.quant_loss.float()
+    optim.zero_grad(set_to_none=True)
+    loss.backward()
+    optim.step()
+    scheduler.step()
+    return {"loss": loss.item(), "recon_mse": recon.item(), "perplexity": out.perplexity.item()}
+
+
+def run_key(group: str, model_cfg: VAEConfig, cfg: TokenizerTrainConfig, data_version: str) -> str:
+    import hashlib
+    import json
+
+    relevant = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("out_dir", "cache_dir", "device")}
+    text = json.dumps([TRAIN_VERSION, group, dataclasses.asdict(model_cfg), relevant, data_version], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def train_tokenizer(
+    group: str,
+    model_cfg: VAEConfig,
+    cfg: TokenizerTrainConfig,
+    train_sequences: Sequence[np.ndarray],
+    probe: ReconstructionProbe | None,
+    data_version: str,
+    on_epoch: Callable[[dict[str, float], int], None] | None = None,
+    stop_after_epochs: int | None = None,
+    dist_ctx: DistributedContext | None = None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train (or resume) one tokenizer; returns where its ``best`` and ``last`` checkpoints are."""
+    from tqdm.auto import tqdm
+
+    dist_ctx = dist_ctx or DistributedContext()
+    if cfg.window % model_cfg.downsample:
+        raise ValueError(f"tokenizer_train.window ({cfg.window}) must be a multiple of the downsampling factor "
+                         f"{model_cfg.downsample}")
+    device = dist_ctx.device if dist_ctx.world_size > 1 else choose_device(cfg.device)
+    key = run_key(group, model_cfg, cfg, data_version)
+    # Both checkpoints live in the cache under the run key (so a finished run is never redone); the
+    # stage copies ``best`` to ``out_dir``.
+    last_path = Path(cfg.cache_dir) / f"{group}-{key}.last.pt"
+    best_path = Path(cfg.cache_dir) / f"{group}-{key}.best.pt"
+    torch.manual_seed(cfg.seed)
+    model = MotionTokenizer(model_cfg)
+    model.set_normalisation(*normalisation(train_sequences))
+    model.to(device)
+    sampler = WindowSampler(train_sequences, cfg.window, cfg.batch_size, cfg.windows_per_clip, cfg.seed,
+                            dist_ctx.rank, dist_ctx.world_size)
+    steps_per_epoch = len(sampler)
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    total, warm, floor = cfg.epochs * steps_per_epoch, cfg.warmup_epochs * steps_per_epoch, cfg.min_lr / cfg.lr
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, warm, total, floor))
+    result = TrainResult(group, best_path, last_path)
+    start_epoch, step, best_score = 0, 0, math.inf
+    if last_path.exists():  # resume: same config + same data -> continue the same curve
+        loaded = load_tokenizer(last_path, device)
+        if loaded.train_state is None:
+            raise ValueError(f"{last_path} has no training state; delete it to start this tokenizer afresh")
+        state = loaded.train_state
+        model.load_state_dict(loaded.model.state_dict())
+        optim.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng"])
+        start_epoch, step, best_score = state["epoch"], state["step"], state["best_score"]
+        result.history, result.best, result.resumed_from_epoch = list(state["history"]), dict(state["best"]), start_epoch
+    net = DistributedDataParallel(model) if dist_ctx.world_size > 1 else model
+    end_epoch = cfg.epochs if stop_after_epochs is None else min(cfg.epochs, start_epoch + stop_after_epochs)
+    bar = tqdm(range(start_epoch, end_epoch), desc=f"tokenizer:{group}", unit="epoch",
+               disable=not progress or not dist_ctx.is_main)
+    for epoch in bar:
+        net.train()
+        sums: dict[str, float] = {}
+        for batch in sampler.epoch(epoch):
+            stats = train_step(net, tuple(t.to(device) for t in batch), optim, scheduler, cfg.precision)
+            step += 1
+            for k, v in stats.items():
+                sums[k] = sums.get(k, 0.0) + v
+        record = {f"train_{k}": v / steps_per_epoch for k, v in sums.items()}
+        record.update(epoch=epoch + 1, lr=optim.param_groups[0]["lr"])
+        if not dist_ctx.is_main:
+            continue
+        if probe is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+            record.update({f"val_{k}": v for k, v in probe.measure(model).items()})
+        score = record.get("val_vpe_mm", record["train_recon_mse"])
+        if score < best_score:
+            best_score, result.best = score, dict(record)
+            save_tokenizer(best_path, model, group, epoch + 1, step, data_version, record)
+        result.history.append(record)
+        train_state = {"optimizer": optim.state_dict(), "scheduler": scheduler.state_dict(),
+                       "rng": torch.get_rng_state(), "epoch": epoch + 1, "step": step, "best_score": best_score,
+                       "history": result.history, "best": result.best}
+        save_tokenizer(last_path, model, group, epoch + 1, step, data_version, record, train_state)
+        bar.set_postfix(loss=f"{record['train_loss']:.4g}", vpe=f"{record.get('val_vpe_mm', float('nan')):.2f}")
+        if on_epoch is not None:
+            on_epoch(record, epoch + 1)
+    return result
