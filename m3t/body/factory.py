@@ -11,6 +11,15 @@ from m3t.body.protocol import BodyModel
 class BodyConfig:
     model: Literal["anny", "smplfx"] = "anny"
     cache_dir: str = ".cache/anny"  # Anny's built-model cache (~800 MB, built once in ~1 min)
+    # SMPL-FX is built at load time from licensed files (see README "SMPL-FX"); relative paths resolve
+    # against the working directory.
+    smplx_path: str = "models/smplx/SMPLX_NEUTRAL.npz"
+    flame_path: str = "models/flame/generic_model.pkl"
+    flame_correspondence_path: str = "models/smplx/SMPL-X__FLAME_vertex_ids.npy"
+    eyelids_path: str = ""  # optional: folder with l_eyelid.npy / r_eyelid.npy (Pixel3DMM / VHAP assets)
+    flame_shape_dims: int = 100  # FLAME shape coefficients in the identity (10 SMPL-X + this; paper: 110)
+    neck_rings: int = 5  # concentric FLAME rings blended from 0.9 (body side) to 0.1 (jaw side)
+    head_alignment: Literal["eyes", "mean"] = "eyes"  # FLAME -> SMPL-X placement: eye joints or mean offset
 
 
 def load_body_model(cfg: BodyConfig) -> BodyModel:
@@ -18,8 +27,30 @@ def load_body_model(cfg: BodyConfig) -> BodyModel:
         from m3t.body.anny_body import AnnyBody
 
         return AnnyBody(cache_dir=cfg.cache_dir)
-    raise NotImplementedError(
-        "body.model 'smplfx' needs the licensed SMPL-X (SMPLX_NEUTRAL.npz) and FLAME 2020 files plus the "
-        "SMPL-X <-> FLAME vertex correspondence; SMPL-FX support is not part of this release yet. "
-        "Use body.model: anny (the embedded open model)."
-    )
+    if cfg.model == "smplfx":
+        from pathlib import Path
+
+        from m3t.body.smplfx import SMPLFXBody
+        from m3t.body.smplfx_build import SMPLFXFiles
+
+        files = SMPLFXFiles(Path(cfg.smplx_path), Path(cfg.flame_path), Path(cfg.flame_correspondence_path),
+                            Path(cfg.eyelids_path) if cfg.eyelids_path else None)
+        return SMPLFXBody(files, flame_shape_dims=cfg.flame_shape_dims, neck_rings=cfg.neck_rings,
+                          alignment=cfg.head_alignment)
+    raise ValueError(f"body.model {cfg.model!r} unknown; allowed: anny, smplfx")
+
+
+def body_cache_key(cfg: BodyConfig) -> object:
+    """What identifies the body model for content-addressed caches: Anny is fixed by its name; SMPL-FX by
+    its options and the bytes of the user's files (a new FLAME file invalidates cached fits)."""
+    if cfg.model == "anny":
+        return cfg.model
+    import dataclasses
+    import hashlib
+    from pathlib import Path
+
+    digests = {}
+    for name in ("smplx_path", "flame_path", "flame_correspondence_path"):
+        path = Path(getattr(cfg, name))
+        digests[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
+    return {**dataclasses.asdict(cfg), "cache_dir": None, "files": digests}

@@ -46,13 +46,22 @@ def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, 
     sets = [body.keypoint_set(joints)] + ([body.keypoint_set(face)] if face is not None else [])
     edges = skeleton_edges(body, joints)
     reconstructed = {**fitted.params, **recon}
+    has_camera = {"fx", "width", "height"} <= set(fitted.camera)
     views = []
     for params in (fitted.params, reconstructed):
-        views.append([project_points(p, fitted.camera) for p in _points(body, params, fitted.identity, sets)])
+        points = _points(body, params, fitted.identity, sets)
+        # no stored camera (e.g. motion imported from 3D keypoints): an orthographic front view, x right, z up
+        views.append([project_points(p, fitted.camera) if has_camera else -p[..., [0, 2]].numpy() * [-1, 1] for p in points])
     frames = min(fitted.num_frames, max_frames)
     fig, ax = plt.subplots(figsize=(4, 4))
-    ax.set_xlim(0, fitted.camera["width"])
-    ax.set_ylim(fitted.camera["height"], 0)
+    if has_camera:
+        ax.set_xlim(0, fitted.camera["width"])
+        ax.set_ylim(fitted.camera["height"], 0)
+    else:
+        every = np.concatenate([v.reshape(-1, 2) for view in views for v in view])
+        low, high = every.min(0) - 0.05, every.max(0) + 0.05
+        ax.set_xlim(low[0], high[0])
+        ax.set_ylim(high[1], low[1])
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])

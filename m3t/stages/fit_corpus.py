@@ -25,7 +25,7 @@ from typing import Callable, Iterable, Iterator, Literal
 import numpy as np
 import torch
 
-from m3t.body.factory import BodyConfig, load_body_model
+from m3t.body.factory import BodyConfig, body_cache_key, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.corpora.clip import Clip
 from m3t.fitting.evaluate import as_tensors, ground_truth_errors, joints_for, procrustes_error_mm
@@ -97,12 +97,19 @@ class FitContext:
     fitting_cfg: FittingConfig
     _body: BodyModel | None = None
     _corpus: object | None = None
+    _body_key: object | None = None
 
     @property
     def body(self) -> BodyModel:
         if self._body is None:
             self._body = load_body_model(self.body_cfg)
         return self._body
+
+    @property
+    def body_key(self) -> object:
+        if self._body_key is None:  # hashing licensed model files once per process, not once per clip
+            self._body_key = body_cache_key(self.body_cfg)
+        return self._body_key
 
     @property
     def corpus(self):
@@ -116,7 +123,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
     media = Path(ctx.cfg.corpus_dir) / clip.media
     if not media.exists():
         raise FileNotFoundError(f"media file {media} of clip {clip.id} is missing")
-    key = _digest(KEY_VERSION, _file_digest(media), ctx.tracker_cfg, ctx.body_cfg.model)
+    key = _digest(KEY_VERSION, _file_digest(media), ctx.tracker_cfg, ctx.body_key)
     path = Path(ctx.cfg.cache_dir) / "tracks" / f"{clip.id}-{key}.npz"
     if not path.exists():
         params, identity, camera = ctx.corpus.ground_truth(clip)
@@ -127,7 +134,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
 
 def fit_key(track_path: Path, ctx: FitContext) -> str:
     """Content address of a fit: the track's bytes, the fitting config and the body model."""
-    return _digest(KEY_VERSION, _file_digest(track_path), ctx.fitting_cfg, ctx.body_cfg.model)
+    return _digest(KEY_VERSION, _file_digest(track_path), ctx.fitting_cfg, ctx.body_key)
 
 
 def fit_clip(clip: Clip, track_path: Path, key: str, ctx: FitContext) -> FittedClip:

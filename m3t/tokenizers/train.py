@@ -86,6 +86,7 @@ class TrainResult:
     history: list[dict[str, float]] = field(default_factory=list)
     best: dict[str, float] = field(default_factory=dict)
     resumed_from_epoch: int = 0
+    model: MotionTokenizer | None = None  # the model after the last epoch (not the selected one)
 
 
 def lr_factor(step: int, warmup_steps: int, total_steps: int, floor: float) -> float:
@@ -192,9 +193,11 @@ def train_tokenizer(
         record.update(epoch=epoch + 1, lr=optim.param_groups[0]["lr"])
         if not dist_ctx.is_main:
             continue
-        if probe is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+        evaluated = probe is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs)
+        if evaluated:
             record.update({f"val_{k}": v for k, v in probe.measure(model).items()})
-        score = record.get("val_vpe_mm", record["train_recon_mse"])
+        # selection: validation vertex error on evaluation epochs; the training loss when there is no probe
+        score = record["val_vpe_mm"] if evaluated else (record["train_recon_mse"] if probe is None else math.inf)
         if score < best_score:
             best_score, result.best = score, dict(record)
             save_tokenizer(best_path, model, group, epoch + 1, step, data_version, record)
@@ -206,4 +209,5 @@ def train_tokenizer(
         bar.set_postfix(loss=f"{record['train_loss']:.4g}", vpe=f"{record.get('val_vpe_mm', float('nan')):.2f}")
         if on_epoch is not None:
             on_epoch(record, epoch + 1)
+    result.model = model
     return result

@@ -1,0 +1,94 @@
+"""The keypoint sets that evaluation measures, defined once for every body model.
+
+Following SOKE's evaluation (M3T Sec. 4, SGSA Tab. 1):
+- ``body``: 12 upper-body points: neck, shoulders, elbows, wrists, ears, eyes, nose;
+- ``left_hand`` / ``right_hand``: 21 points each in OpenPose hand order (wrist; thumb CMC, MCP, IP, tip;
+  then MCP, PIP, DIP, tip of index, middle, ring, pinky), fingertips from vertices;
+- ``face``: the vertices the face stream moves (for DTW-VPE).
+
+Every point except the neck is taken from the body model's MediaPipe-Holistic correspondence (its pose
+part for the 11 face and arm points, its hand parts for the hands: MediaPipe's hand order is OpenPose's),
+so Anny and SMPL-FX share one definition. The neck, absent from MediaPipe, is the model's neck joint.
+The face vertices are found through the protocol itself: those that move when the face stream changes.
+The sets plug into ``body.keypoint_set`` / ``body.forward_keypoints``.
+
+Axis legend: T frames, K keypoints.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from m3t.body.protocol import BodyModel, Correspondence
+
+BODY_POINTS = ("neck", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+               "left_ear", "right_ear", "left_eye", "right_eye", "nose")
+NECK_JOINT = {"anny": "neck01", "smplfx": "neck"}
+HAND_POINTS = (
+    "wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
+    "index_finger_mcp", "index_finger_pip", "index_finger_dip", "index_finger_tip",
+    "middle_finger_mcp", "middle_finger_pip", "middle_finger_dip", "middle_finger_tip",
+    "ring_finger_mcp", "ring_finger_pip", "ring_finger_dip", "ring_finger_tip",
+    "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
+)
+FACE_MOTION_THRESHOLD_M = 1e-5
+
+
+def _subset(corr: Correspondence, names: list[str]) -> Correspondence:
+    position = {n: i for i, n in enumerate(corr.names)}
+    missing = [n for n in names if n not in position]
+    if missing:
+        raise KeyError(f"landmarks {missing} are not in the correspondence")
+    rows = [position[n] for n in names]
+    return Correspondence(tuple(names), corr.kind[rows].copy(), corr.index[rows].copy())
+
+
+def _neck_index(body: BodyModel) -> int:
+    name = NECK_JOINT.get(body.name)
+    if name is None or name not in body.joint_names:
+        candidates = [n for n in body.joint_names if n.lower().startswith("neck")]
+        if not candidates:
+            raise KeyError(f"body model {body.name!r} has no neck joint; add it to NECK_JOINT")
+        name = candidates[0]
+    return body.joint_names.index(name)
+
+
+@torch.no_grad()
+def face_vertices(body: BodyModel) -> np.ndarray:
+    """Vertex indices moved by the face stream (rest vs. a mid-range face), sorted."""
+    rest = body.rest_params(1)
+    face = body.layout["face"]
+    moved = {k: v.clone() for k, v in rest.items()}
+    bump = rest["face"] + 0.5
+    if face.bounds is not None:
+        bump = bump.clamp(*face.bounds)
+    moved["face"] = bump
+    identity = body.default_identity()
+    a = body.forward(rest, identity).vertices[0]
+    b = body.forward(moved, identity).vertices[0]
+    return np.flatnonzero((torch.linalg.norm(a - b, dim=-1) > FACE_MOTION_THRESHOLD_M).cpu().numpy())
+
+
+def metric_keypoints(body: BodyModel, landmark_set: str = "mediapipe_holistic") -> dict[str, Correspondence]:
+    """``{"body": 12 points, "left_hand": 21, "right_hand": 21, "face": face vertices}`` for ``body``."""
+    corr = body.correspondence(landmark_set)
+    pose = _subset(corr, [f"pose:{n}" for n in BODY_POINTS[1:]])
+    body_set = Correspondence(BODY_POINTS, np.concatenate([[1], pose.kind]), np.concatenate([[_neck_index(body)], pose.index]))
+    out = {"body": body_set}
+    for side in ("left_hand", "right_hand"):
+        hand = _subset(corr, [f"{side}:{n}" for n in HAND_POINTS])
+        out[side] = Correspondence(HAND_POINTS, hand.kind, hand.index)
+    for name, c in out.items():
+        if not c.valid.all():
+            lost = [n for n, ok in zip(c.names, c.valid) if not ok]
+            raise ValueError(f"metric set {name!r} of body model {body.name!r} lacks points {lost}")
+    verts = face_vertices(body)
+    out["face"] = Correspondence(tuple(f"v{v}" for v in verts), np.zeros(len(verts), dtype=np.int64), verts.astype(np.int64))
+    return out
+
+
+def metric_points(body: BodyModel, params: dict[str, torch.Tensor], identity: torch.Tensor,
+                  sets: dict[str, Correspondence] | None = None) -> dict[str, torch.Tensor]:
+    """(T, K, 3) positions of every metric set for a parameter sequence (sparse forward)."""
+    sets = sets or metric_keypoints(body)
+    return {name: body.forward_keypoints(params, identity, body.keypoint_set(c)) for name, c in sets.items()}

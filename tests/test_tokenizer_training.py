@@ -1,0 +1,161 @@
+"""Tokenizer training on tiny shards: overfitting, exact resume, DDP on gloo, bf16 autocast, and the
+train-tokenizers + tokenize flow end to end."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from m3t.config import load_params, to_dict
+from m3t.corpora.clip import Clip
+from m3t.runtime import DistributedContext
+from m3t.shards.io import read_shard, write_shard
+from m3t.shards.schema import FittedClip
+from m3t.shards.tokens import read_token_shard
+from m3t.tokenizers.data import clip_sequences, normalisation
+from m3t.tokenizers.evaluate import ReconstructionProbe
+from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig, train_step, train_tokenizer
+from m3t.tokenizers.vae import MotionTokenizer
+from test_fitting import front_camera, smooth_motion
+
+ROOT = Path(__file__).resolve().parents[1]
+SPLITS = {"train": 4, "dev": 1, "test": 1}
+
+
+@pytest.fixture(scope="module")
+def shards_dir(body, tmp_path_factory) -> Path:
+    """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames)."""
+    root = tmp_path_factory.mktemp("shards")
+    seed = 0
+    for split, count in SPLITS.items():
+        clips = []
+        for _ in range(count):
+            frames = 18 + 7 * seed % 24
+            params = {k: v.numpy() for k, v in smooth_motion(body, frames=frames, seed=seed).items()}
+            clip = Clip(f"c{seed}", "synthetic", split, "ASL-SYN", "s0", "t", "G", f"c{seed}.npz", 25.0)
+            camera = front_camera().as_dict() if seed % 2 else {}  # with and without a stored camera
+            clips.append(FittedClip(clip, "k", params, body.default_identity().numpy(), camera, {}, body.name))
+            seed += 1
+        write_shard(root / f"{split}.parquet", clips, body.layout)
+    return root
+
+
+def tiny_cfg(tmp_path: Path, **overrides) -> TokenizerTrainConfig:
+    base = TokenizerTrainConfig(out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"), epochs=4,
+                                warmup_epochs=1, lr=2e-3, batch_size=4, window=16, windows_per_clip=2, device="cpu")
+    return dataclasses.replace(base, **overrides)
+
+
+def sequences(shards_dir: Path, group: str, split: str = "train") -> list[np.ndarray]:
+    return [s for c in read_shard(shards_dir / f"{split}.parquet").clips for s in clip_sequences(c.params, group)]
+
+
+TINY_MODEL = TokenizerConfig(width=32, depth=2)
+
+
+def test_tiny_tokenizer_overfits_a_tiny_shard(shards_dir, tmp_path, body):
+    group = "body"
+    seqs = sequences(shards_dir, group)
+    cfg = tiny_cfg(tmp_path, epochs=150, warmup_epochs=5, lr=3e-3, windows_per_clip=4, eval_every=150)
+    probe = ReconstructionProbe(body, group, read_shard(shards_dir / "train.parquet").clips)
+    model_cfg = TINY_MODEL.vae_config(group, seqs[0].shape[1])
+    untrained = MotionTokenizer(model_cfg)
+    untrained.set_normalisation(*normalisation(seqs))
+    before = probe.measure(untrained)["vpe_mm"]
+    result = train_tokenizer(group, model_cfg, cfg, seqs, probe, "v", progress=False)
+    first, last = result.history[0]["train_recon_mse"], result.history[-1]["train_recon_mse"]
+    assert last < first / 10, (first, last)
+    assert result.best["val_vpe_mm"] < before / 2, (before, result.best["val_vpe_mm"])  # in vertices, too
+    assert result.best_path.exists() and result.last_path.exists()
+
+
+@pytest.mark.parametrize("quantizer", ["fsq", "vq"])
+def test_resumed_training_continues_the_same_loss_curve(shards_dir, tmp_path, quantizer):
+    group = "hand"
+    seqs = sequences(shards_dir, group)
+    model_cfg = dataclasses.replace(TINY_MODEL, quantizer=quantizer, vq_code_dim=8).vae_config(group, seqs[0].shape[1])
+    straight = train_tokenizer(group, model_cfg, tiny_cfg(tmp_path / "a"), seqs, None, "v", progress=False)
+    cfg = tiny_cfg(tmp_path / "b")
+    part = train_tokenizer(group, model_cfg, cfg, seqs, None, "v", stop_after_epochs=2, progress=False)
+    assert len(part.history) == 2
+    resumed = train_tokenizer(group, model_cfg, cfg, seqs, None, "v", progress=False)
+    assert resumed.resumed_from_epoch == 2
+    curve = lambda r: [h["train_loss"] for h in r.history]  # noqa: E731
+    assert np.allclose(curve(resumed), curve(straight), rtol=1e-5, atol=1e-7)
+    for (name, a), b in zip(straight.model.state_dict().items(), resumed.model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6), name
+
+
+def test_bf16_autocast_step_on_cpu():
+    torch.manual_seed(0)
+    model = MotionTokenizer(TINY_MODEL.vae_config("face", 10))
+    optim = torch.optim.Adam(model.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
+    before = model.encoder[0].weight.detach().clone()
+    stats = train_step(model, (torch.randn(2, 16, 10), torch.ones(2, 16, dtype=torch.bool)), optim, sched, "bf16")
+    assert math.isfinite(stats["loss"])
+    assert not torch.equal(before, model.encoder[0].weight)
+
+
+def _ddp_worker(rank: int, world: int, rdv: str, shards: str, out: str) -> None:
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{rdv}", rank=rank, world_size=world)
+    try:
+        seqs = sequences(Path(shards), "face")
+        cfg = tiny_cfg(Path(out), epochs=2, device="cpu")
+        ctx = DistributedContext(rank, world, torch.device("cpu"))
+        result = train_tokenizer("face", TINY_MODEL.vae_config("face", seqs[0].shape[1]), cfg, seqs, None, "v",
+                                 dist_ctx=ctx, progress=False)
+        torch.save(result.model.state_dict(), Path(out) / f"rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_ddp_on_gloo_keeps_ranks_in_sync(shards_dir, tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_ddp_worker, args=(2, str(tmp_path / "rdv"), str(shards_dir), str(tmp_path)), nprocs=2, join=True)
+    a, b = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2))
+    for name in a:
+        assert torch.allclose(a[name], b[name], atol=1e-6), name
+    assert list((tmp_path / "cache").glob("face-*.last.pt")), "rank 0 writes the resumable checkpoint"
+    assert not any(torch.equal(a[n], torch.zeros_like(a[n])) for n in a if n.endswith("weight"))
+
+
+def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, body):
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.tokenizers import train_tokenizers_flow
+
+    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
+        "body": {"cache_dir": str(ROOT / ".cache" / "anny")},
+        "tokenizer_train": {"shards_dir": str(shards_dir), "out_dir": str(tmp_path / "tok"),
+                            "cache_dir": str(tmp_path / "cache")},
+        "tokenize": {"tokenizers_dir": str(tmp_path / "tok"), "shards_dir": str(shards_dir),
+                     "out_dir": str(tmp_path / "tokens")}})
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text(yaml.safe_dump(to_dict(params)))
+    with prefect_test_harness():
+        result = train_tokenizers_flow(params_path=str(params_file))
+    report = result["tokenizers"]
+    assert set(report) == {"body", "hand", "face"}
+    assert report["face"]["codebook_size"] == 216 and 0 < report["face"]["utilisation_pct"] <= 100
+    assert all(math.isfinite(report[g]["test_pa_vpe_mm"]) for g in report)
+    for group in report:
+        assert (tmp_path / "tok" / f"{group}.pt").exists()
+        assert (tmp_path / "tok" / "plots" / f"tokens_{group}.png").exists()
+        assert (tmp_path / "tok" / "plots" / f"reconstruction_{group}.gif").exists()
+    for split in SPLITS:
+        shard = read_token_shard(tmp_path / "tokens" / f"{split}.parquet")
+        fitted = read_shard(shards_dir / f"{split}.parquet").clips
+        assert [c.clip.id for c in shard.clips] == [c.clip.id for c in fitted]
+        assert shard.info.streams == {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}
+        for tok, fit in zip(shard.clips, fitted):
+            assert all(len(t) == -(-fit.num_frames // 4) for t in tok.tokens.values())
+    assert result["tokens"]["rejected"] == 0
