@@ -4,6 +4,9 @@
     m3t fit-corpus [--max-clips N]        run the fit-corpus flow once, locally (temporary Prefect server)
     m3t serve [--port 4200]               start a Prefect server on 127.0.0.1 and serve the deployments;
                                           then: prefect deployment run fit-corpus/embedded
+    m3t ablate-tokenizers [--full] [--dry-run] [--widths ...]
+                                          the Tab. 3 sweep: one `dvc exp run --temp -S ...` per setting
+    m3t tokenizer-table                   print the Tab. 3-style comparison from MLflow
 """
 from __future__ import annotations
 
@@ -67,6 +70,32 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         server.wait(timeout=30)
 
 
+def _cmd_ablate(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import absolute_uri
+    from m3t.tokenizers.ablation import CPU_WIDTHS, dvc_command, sweep_settings
+
+    params = load_params(args.params)
+    settings = sweep_settings(params.tokenizer.width, widths=args.widths or CPU_WIDTHS, full=args.full)
+    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
+    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
+    for i, setting in enumerate(settings, 1):
+        command = dvc_command(setting)
+        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
+        if not args.dry_run and subprocess.call(command, env=env) != 0:
+            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
+    return 0
+
+
+def _cmd_tokenizer_table(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+    from m3t.tokenizers.ablation import ablation_table
+
+    print(ablation_table(fetch_runs(load_params(args.params).experiment, stage="train-tokenizers")))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -83,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("serve", help="Prefect server on 127.0.0.1 + deployments")
     p.add_argument("--port", type=int, default=4200)
     p.set_defaults(func=_cmd_serve)
+    p = sub.add_parser("ablate-tokenizers", help="run the quantisation ablation sweep (dvc exp run --temp)")
+    p.add_argument("--full", action="store_true", help="the whole quantizer x batch x width grid")
+    p.add_argument("--widths", type=int, nargs="*", help="widths to sweep (default 32 64 128; paper: 512 1024 2048)")
+    p.add_argument("--dry-run", action="store_true")
+    p.set_defaults(func=_cmd_ablate)
+    p = sub.add_parser("tokenizer-table", help="print the Tab. 3-style tokenizer comparison from MLflow")
+    p.set_defaults(func=_cmd_tokenizer_table)
     args = parser.parse_args(argv)
     return args.func(args)
 
