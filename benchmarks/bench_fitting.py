@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import platform
 import sys
 import time
@@ -24,10 +23,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from m3t.body.anny_body import AnnyBody, AnnyKeypoints  # noqa: E402
 from m3t.fitting.fit import FittingConfig, fit_track  # noqa: E402
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track  # noqa: E402
+from report import write_and_log  # noqa: E402
 from test_fitting import front_camera, smooth_motion  # noqa: E402
 
 
@@ -87,20 +88,7 @@ def main() -> None:
         "machine": platform.machine(),
         "torch": torch.__version__,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    try:
-        from m3t.config import load_params
-        from m3t.experiment import start_run
-
-        with start_run(load_params().experiment, "benchmark-fitting") as run:
-            run.log_metrics({k: v for k, v in result.items() if isinstance(v, (int, float))})
-            run.log_artifact(out)
-    except Exception as exc:  # noqa: BLE001 - the result file is the primary output
-        print(f"(not logged to MLflow: {exc})")
-    print(json.dumps(result, indent=2))
-
+    write_and_log(result, args.out, "benchmark-fitting")
 
 if __name__ == "__main__":
     main()

@@ -19,7 +19,6 @@ Backward: the sum of the outputs, gradients to the pose parameters and the ident
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import tempfile
@@ -29,8 +28,10 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from m3t.body.rotations import sixd_to_matrix  # noqa: E402
+from report import write_and_log  # noqa: E402
 from smplfx_fixtures import fixture_body, make_fixture_files, smplfx_motion  # noqa: E402
 
 
@@ -133,11 +134,7 @@ def main() -> None:
         "torch": torch.__version__,
         "smplx": getattr(smplx, "__version__", "0.1.28"),
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-
+    write_and_log(result, args.out, "benchmark-smplfx")
 
 if __name__ == "__main__":
     main()

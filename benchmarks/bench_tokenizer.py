@@ -14,18 +14,21 @@ Goal: training at >= 60% of the matmul peak at width 512, data loading included.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
+import sys
 import time
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from m3t.shards.io import read_shard
-from m3t.tokenizers.data import WindowSampler, clip_sequences
-from m3t.tokenizers.train import TokenizerConfig, lr_factor, train_step
-from m3t.tokenizers.vae import MotionTokenizer, count_parameters
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from m3t.shards.io import read_shard  # noqa: E402
+from m3t.tokenizers.data import WindowSampler, clip_sequences  # noqa: E402
+from m3t.tokenizers.train import TokenizerConfig, lr_factor, train_step  # noqa: E402
+from m3t.tokenizers.vae import MotionTokenizer, count_parameters  # noqa: E402
+from report import write_and_log  # noqa: E402
 
 
 def conv_flops(model: nn.Module, x: torch.Tensor) -> float:
@@ -110,20 +113,7 @@ def main() -> None:
         "machine": platform.machine(),
         "torch": torch.__version__,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    try:
-        from m3t.config import load_params
-        from m3t.experiment import start_run
-
-        with start_run(load_params().experiment, "benchmark-tokenizer") as run:
-            run.log_metrics({k: v for k, v in result.items() if isinstance(v, (int, float))})
-            run.log_artifact(out)
-    except Exception as exc:  # noqa: BLE001 - the result file is the primary output
-        print(f"(not logged to MLflow: {exc})")
-    print(json.dumps(result, indent=2))
-
+    write_and_log(result, args.out, "benchmark-tokenizer")
 
 if __name__ == "__main__":
     main()
