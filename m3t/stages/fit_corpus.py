@@ -298,6 +298,7 @@ def log_report(params, ctx: FitContext, report: FitCorpusReport) -> str | None:
     """Log a fit-corpus run to MLflow: params, summary metrics, quarantine report, fitted-vs-truth pictures."""
     from m3t.config import flat_params
     from m3t.experiment import start_run
+    from m3t.render.mesh import log_fitted_frame
     from m3t.render.skeleton import render_fit_comparison
 
     with start_run(params.experiment, "fit-corpus") as run:
@@ -312,6 +313,9 @@ def log_report(params, ctx: FitContext, report: FitCorpusReport) -> str | None:
             truth = ctx.corpus.ground_truth(fitted.clip) if ctx.cfg.corpus == "synthetic" else None
             image = Path(ctx.cfg.cache_dir) / "render" / f"{fitted.clip.id}.png"
             run.log_artifact(render_fit_comparison(ctx.body, fitted, truth, image), "fit_vs_ground_truth")
+            # the fitted mesh of the middle frame: PLY + a rendered picture
+            log_fitted_frame(run, ctx.body, fitted.params, fitted.identity, fitted.num_frames // 2,
+                             Path(ctx.cfg.cache_dir) / "render", fitted.camera, stem=fitted.clip.id)
         return run.run_id
 
 
