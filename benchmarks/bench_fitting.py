@@ -25,7 +25,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from m3t.body.anny_body import AnnyBody, AnnyKeypoints  # noqa: E402
+from m3t.body.anny_body import AnnyBody  # noqa: E402
+from m3t.body.protocol import KeypointIndex  # noqa: E402
 from m3t.fitting.fit import FittingConfig, fit_track  # noqa: E402
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track  # noqa: E402
 from report import write_and_log  # noqa: E402
@@ -35,10 +36,10 @@ from test_fitting import front_camera, smooth_motion  # noqa: E402
 class FullMeshBody(AnnyBody):
     """Anny whose keypoint forward runs the full-mesh forward and then picks the landmarks."""
 
-    def forward_keypoints(self, params, identity, keypoints: AnnyKeypoints) -> torch.Tensor:
+    def forward_keypoints(self, params, identity, keypoints: KeypointIndex) -> torch.Tensor:
         out = self.forward(params, identity)
         vertices = out.vertices[:, keypoints.vertex_index]
-        joints = out.joints[:, keypoints.bone_index]
+        joints = out.joints[:, keypoints.joint_index]
         points = torch.where(keypoints.is_vertex[None, :, None], vertices, joints)
         return points * keypoints.valid[None, :, None]
 

@@ -22,14 +22,13 @@ from __future__ import annotations
 import json
 import os
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import roma
 import torch
 
-from m3t.body.protocol import BodyOutput, Correspondence, Modality, ModalityLayout, Params
+from m3t.body.protocol import BodyOutput, Correspondence, KeypointIndex, Modality, ModalityLayout, Params
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 
 DATA_DIR = Path(__file__).parent / "data"
@@ -66,16 +65,6 @@ def _load_anny(cache_dir: Path):
             os.environ.setdefault("ANNY_CACHE_DIR", key)
             _MODELS[key] = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref").to(torch.float32)
         return _MODELS[key]
-
-
-@dataclass(frozen=True)
-class AnnyKeypoints:
-    """Precomputed sparse forward data for K points: each point is a vertex or a bone head."""
-
-    is_vertex: torch.Tensor  # (K,) bool
-    vertex_index: torch.Tensor  # (K,) long, 0 where not a vertex
-    bone_index: torch.Tensor  # (K,) long, the bone for joint points, 0 otherwise
-    valid: torch.Tensor  # (K,) bool
 
 
 class AnnyBody(torch.nn.Module):
@@ -185,26 +174,17 @@ class AnnyBody(torch.nn.Module):
         vertices = self._skin(rest, transforms, self.skin_bones, self.skin_weights)
         return BodyOutput(joints=poses[..., :3, 3], vertices=vertices)
 
-    def keypoint_set(self, correspondence: Correspondence) -> AnnyKeypoints:
-        kind = torch.as_tensor(correspondence.kind)
-        index = torch.as_tensor(correspondence.index).long()
-        device = self.template.device
-        is_vertex = kind == 0
-        return AnnyKeypoints(
-            is_vertex=is_vertex.to(device),
-            vertex_index=torch.where(is_vertex, index, 0).to(device),
-            bone_index=torch.where(kind == 1, index, 0).to(device),
-            valid=(kind >= 0).to(device),
-        )
+    def keypoint_set(self, correspondence: Correspondence) -> KeypointIndex:
+        return KeypointIndex.from_correspondence(correspondence, self.template.device)
 
-    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: AnnyKeypoints) -> torch.Tensor:
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex) -> torch.Tensor:
         coeffs = self._identity_coeffs(identity)
         transforms, poses = self._bone_transforms(params, self._rest_bones(coeffs))
         vidx = keypoints.vertex_index
         rest = self.template[vidx] + torch.einsum("bn,nkc->bkc", coeffs, self.pheno_bs[:, vidx])
         rest = rest + torch.einsum("bf,fkc->bkc", params["face"], self.face_bs[:, vidx])  # (B, K, 3)
         skinned = self._skin(rest, transforms, self.skin_bones[vidx], self.skin_weights[vidx])
-        joints = poses[:, keypoints.bone_index, :3, 3]  # (B, K, 3)
+        joints = poses[:, keypoints.joint_index, :3, 3]  # (B, K, 3)
         out = torch.where(keypoints.is_vertex[None, :, None], skinned, joints)
         return out * keypoints.valid[None, :, None]
 

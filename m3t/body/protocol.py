@@ -98,6 +98,32 @@ class Correspondence:
         return self.kind >= 0
 
 
+@dataclass(frozen=True)
+class KeypointIndex:
+    """What a sparse forward needs for K points, each a vertex or a joint (bone head) of the model.
+
+    vertex_index / joint_index hold 0 where the point is not of that kind; valid is False where the
+    correspondence has none (the point is returned as zeros).
+    """
+
+    is_vertex: torch.Tensor  # (K,) bool
+    vertex_index: torch.Tensor  # (K,) long
+    joint_index: torch.Tensor  # (K,) long
+    valid: torch.Tensor  # (K,) bool
+
+    @classmethod
+    def from_correspondence(cls, correspondence: Correspondence, device: torch.device | str) -> KeypointIndex:
+        kind = torch.as_tensor(correspondence.kind)
+        index = torch.as_tensor(correspondence.index).long()
+        is_vertex = kind == 0
+        return cls(
+            is_vertex=is_vertex.to(device),
+            vertex_index=torch.where(is_vertex, index, 0).to(device),
+            joint_index=torch.where(kind == 1, index, 0).to(device),
+            valid=(kind >= 0).to(device),
+        )
+
+
 class BodyModel(Protocol):
     """What fitting, tokenizers and renderers need from a body model."""
 

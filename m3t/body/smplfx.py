@@ -22,13 +22,12 @@ Axis legend: B frames, V vertices, J joints, K keypoints, N blendshape direction
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyOutput, Correspondence, Modality, ModalityLayout, Params
+from m3t.body.protocol import BodyOutput, Correspondence, KeypointIndex, Modality, ModalityLayout, Params
 from m3t.body.rotations import identity_6d, sixd_to_matrix
 from m3t.body.smplfx_build import (
     BODY_POSE_JOINTS, POSED_JOINTS, ROOT, SMPLFXData, SMPLFXFiles, build_smplfx, hand_joint_names,
@@ -39,16 +38,6 @@ DATA_DIR = Path(__file__).parent / "data"
 TO_PROTOCOL_FRAME = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 FACE_LABELS = tuple(f"expr_{i:03d}" for i in range(100)) + ("eyelid_left", "eyelid_right") + tuple(
     f"jaw_6d_{i}" for i in range(6))
-
-
-@dataclass(frozen=True)
-class SMPLFXKeypoints:
-    """Precomputed sparse forward data for K points (each a vertex or a joint)."""
-
-    is_vertex: torch.Tensor  # (K,) bool
-    vertex_index: torch.Tensor  # (K,) long, 0 where not a vertex
-    joint_index: torch.Tensor  # (K,) long, 0 where not a joint
-    valid: torch.Tensor  # (K,) bool
 
 
 def _depth_levels(parents: np.ndarray) -> list[torch.Tensor]:
@@ -182,19 +171,10 @@ class SMPLFXBody(torch.nn.Module):
         vertices = self._skin(rest, self.weights, glob_rot, pos, rest_joints)
         return BodyOutput(joints=self._to_frame(pos, rest_joints), vertices=self._to_frame(vertices, rest_joints))
 
-    def keypoint_set(self, correspondence: Correspondence) -> SMPLFXKeypoints:
-        kind = torch.as_tensor(correspondence.kind)
-        index = torch.as_tensor(correspondence.index).long()
-        device = self.template.device
-        is_vertex = kind == 0
-        return SMPLFXKeypoints(
-            is_vertex=is_vertex.to(device),
-            vertex_index=torch.where(is_vertex, index, 0).to(device),
-            joint_index=torch.where(kind == 1, index, 0).to(device),
-            valid=(kind >= 0).to(device),
-        )
+    def keypoint_set(self, correspondence: Correspondence) -> KeypointIndex:
+        return KeypointIndex.from_correspondence(correspondence, self.template.device)
 
-    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: SMPLFXKeypoints) -> torch.Tensor:
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex) -> torch.Tensor:
         coeffs, rest_joints, glob_rot, pos, pose_feature = self._posed(params, identity)
         vidx = keypoints.vertex_index
         rest = self._rest_points(coeffs, params["face"].to(self.template.dtype), pose_feature, vidx)
