@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from m3t.body.protocol import BodyModel
+from m3t.fitting.evaluate import as_tensors
 
 
 def export_mesh(vertices: np.ndarray, faces: np.ndarray, path: str | Path) -> Path:
@@ -80,7 +81,7 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, path: str | Path, camer
 @torch.no_grad()
 def frame_mesh(body: BodyModel, params: dict[str, np.ndarray], identity: np.ndarray, frame: int) -> np.ndarray:
     """(V, 3) vertices of one frame of a parameter sequence."""
-    one = {k: torch.as_tensor(np.asarray(v)[frame:frame + 1], dtype=torch.float32) for k, v in params.items()}
+    one = as_tensors({k: np.asarray(v)[frame:frame + 1] for k, v in params.items()})
     return body.forward(one, torch.as_tensor(identity, dtype=torch.float32)).vertices[0].cpu().numpy()
 
 

@@ -128,14 +128,15 @@ def run_train_tokenizers(
         input_dim = check_layout(layout, group)
         train_clips = splits["train"] + (face_only_clips(cfg.extra_face_shards) if group == "face" else [])
         sequences = usable_sequences(group, train_clips, rejected)
-        dev = [c for c in splits["dev"] if not any(r["clip_id"] == c.clip.id for r in rejected)]
+        rejected_ids = {r["clip_id"] for r in rejected}
+        usable = {s: [c for c in clips if c.clip.id not in rejected_ids] for s, clips in splits.items()}
+        dev = usable["dev"]
         probe = ReconstructionProbe(body, group, dev or splits["train"], cfg.val_max_frames) if dist_ctx.is_main else None
         callback = (lambda record, epoch, g=group: on_epoch(g, record, epoch)) if on_epoch else None
         results[group] = train_tokenizer(group, tok_cfg.vae_config(group, input_dim), cfg, sequences, probe, version,
                                          callback, stop_after_epochs, dist_ctx, progress)
         if dist_ctx.is_main:
             atomic_copy(results[group].best_path, out_dir / f"{group}.pt")
-            usable = {s: [c for c in clips if not any(r["clip_id"] == c.clip.id for r in rejected)] for s, clips in splits.items()}
             report[group] = {**group_report(group, out_dir / f"{group}.pt", usable, body, plots, cfg.val_max_frames),
                              "best_epoch": float(results[group].best.get("epoch", 0)),
                              **{f"best_{k}": v for k, v in results[group].best.items() if k.startswith("val_")}}

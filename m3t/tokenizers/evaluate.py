@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from m3t.body.protocol import BodyModel
+from m3t.fitting.evaluate import as_tensors
 from m3t.metrics.vertices import region_keypoints, region_vertices, stream_vertex_region, vertex_errors_mm
 from m3t.shards.schema import FittedClip
 from m3t.tokenizers.data import GROUPS, from_canonical, pad_to_multiple, to_canonical
@@ -65,7 +66,7 @@ class ReconstructionProbe:
         for stream in self.streams:
             self.keypoints[stream.modality] = region_keypoints(self.body, stream_vertex_region(self.body, stream.modality))
         for clip in self.clips:  # reference vertices are computed once, not at every evaluation
-            params = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in clip.params.items()}
+            params = as_tensors(clip.params)
             identity = torch.as_tensor(np.asarray(clip.identity), dtype=torch.float32)
             truth = {s.modality: region_vertices(self.body, params, identity, self.keypoints[s.modality]) for s in self.streams}
             self._inputs.append((params, identity, truth))
