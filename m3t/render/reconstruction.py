@@ -33,8 +33,13 @@ def _points(body: BodyModel, params: dict, identity: np.ndarray, sets: list) -> 
 
 
 def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, np.ndarray], path: str | Path,
-                          title: str = "", max_frames: int = 120) -> Path:
-    """Write an animated GIF of ``fitted`` (orange) against the same clip with ``recon`` streams (blue)."""
+                          title: str = "", max_frames: int = 120,
+                          labels: tuple[str, str] = ("fitted", "reconstructed")) -> Path:
+    """Write an animated GIF of ``fitted`` (orange) against the same clip with ``recon`` streams (blue).
+
+    ``recon`` may replace every stream with a sequence of another length (generated motion): each side then
+    holds its last frame once it ends.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -52,7 +57,8 @@ def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, 
         points = _points(body, params, fitted.identity, sets)
         # no stored camera (e.g. motion imported from 3D keypoints): an orthographic front view, x right, z up
         views.append([project_points(p, fitted.camera) if has_camera else -p[..., [0, 2]].numpy() * [-1, 1] for p in points])
-    frames = min(fitted.num_frames, max_frames)
+    lengths = [view[0].shape[0] for view in views]
+    frames = min(max(lengths), max_frames)
     fig, ax = plt.subplots(figsize=(4, 4))
     if has_camera:
         ax.set_xlim(0, fitted.camera["width"])
@@ -70,15 +76,16 @@ def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, 
         lines = [ax.plot([], [], color=colour, lw=1.2)[0] for _ in edges]
         dots = ax.scatter([], [], s=1, color=colour) if face_uv else None
         artists.append((joint_uv, face_uv[0] if face_uv else None, lines, dots))
-    ax.legend([artists[0][2][0], artists[1][2][0]], ["fitted", "reconstructed"], fontsize=7, loc="lower left")
+    ax.legend([artists[0][2][0], artists[1][2][0]], list(labels), fontsize=7, loc="lower left")
     ax.set_title(title or fitted.clip.id, fontsize=8)
 
     def draw(t: int):
-        for joint_uv, face_uv, lines, dots in artists:
+        for (joint_uv, face_uv, lines, dots), n in zip(artists, lengths):
+            i = min(t, n - 1)
             for line, (a, b) in zip(lines, edges):
-                line.set_data(joint_uv[t, [a, b], 0], joint_uv[t, [a, b], 1])
+                line.set_data(joint_uv[i, [a, b], 0], joint_uv[i, [a, b], 1])
             if dots is not None:
-                dots.set_offsets(face_uv[t])
+                dots.set_offsets(face_uv[i])
         return []
 
     path = Path(path)

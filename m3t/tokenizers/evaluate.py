@@ -20,7 +20,7 @@ from m3t.body.protocol import BodyModel
 from m3t.fitting.evaluate import as_tensors
 from m3t.metrics.vertices import region_keypoints, region_vertices, stream_vertex_region, vertex_errors_mm
 from m3t.shards.schema import FittedClip
-from m3t.tokenizers.data import GROUPS, from_canonical, pad_to_multiple, to_canonical
+from m3t.tokenizers.data import GROUPS, STREAMS, from_canonical, pad_to_multiple, to_canonical
 from m3t.tokenizers.vae import MotionTokenizer
 
 
@@ -42,6 +42,23 @@ def reconstruct_clip(model: MotionTokenizer, values: np.ndarray | torch.Tensor) 
     values = torch.as_tensor(values)
     x = _padded(model, values).to(model.mean.device)
     return model(x).recon[0, : values.shape[0]].float().cpu()
+
+
+@torch.no_grad()
+def decode_streams(models: dict[str, MotionTokenizer], tokens: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Token streams (each (N,)) -> body-model parameters (N * downsample, D_m) per modality.
+
+    The inverse of tokenisation: each stream through its group's frozen decoder, left hands mirrored back.
+    """
+    params = {}
+    for stream in STREAMS:
+        if stream.name not in tokens:
+            raise KeyError(f"no tokens for stream {stream.name!r}; expected {[s.name for s in STREAMS]}")
+        model = models[next(g for g, streams in GROUPS.items() if stream in streams)]
+        idx = torch.as_tensor(np.asarray(tokens[stream.name]), dtype=torch.long, device=model.mean.device)[None]
+        values = model.decode(idx)[0].float().cpu()
+        params[stream.modality] = from_canonical(values, stream).numpy()
+    return params
 
 
 @dataclass

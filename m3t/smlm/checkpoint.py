@@ -1,0 +1,69 @@
+"""Self-describing SMLM checkpoints: ``{format, config, dims, backbone_config, vocabulary, state_dict, epoch,
+step, data_version, metrics}``. The model and its vocabulary (with the trained SentencePiece model inside)
+are rebuilt from the file alone, loaded with ``weights_only=True``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
+from m3t.smlm.vocab import SignVocabulary
+from m3t.tokenizers.checkpoint import atomic_torch_save
+
+FORMAT = "m3t-smlm-v1"
+
+
+@dataclass(frozen=True)
+class LoadedSMLM:
+    model: SignMotionLM
+    vocab: SignVocabulary
+    epoch: int
+    step: int
+    data_version: str
+    metrics: dict[str, float]
+    train_config: dict
+
+
+
+def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabulary, epoch: int, step: int,
+              data_version: str, metrics: dict[str, float], train_config: dict | None = None) -> Path:
+    """``train_config``: the training settings, kept so evaluations can say which variant they measure."""
+    return atomic_torch_save({
+        "format": FORMAT,
+        "config": dataclasses.asdict(model.cfg),
+        "dims": dataclasses.asdict(model.dims),
+        "backbone_config": model.backbone.config.to_dict(),
+        "vocabulary": vocab.to_dict(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "epoch": int(epoch),
+        "step": int(step),
+        "data_version": data_version,
+        "metrics": {k: float(v) for k, v in metrics.items()},
+        "train_config": dict(train_config or {}),
+    }, path)
+
+
+
+
+def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"SMLM checkpoint {path} not found; run `dvc repro train-smlm` first")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same advice
+        raise ValueError(f"{path}: not a readable SMLM checkpoint ({type(exc).__name__}: {exc}); retrain it") from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ValueError(f"{path}: not an m3t SMLM checkpoint (expected format {FORMAT!r})")
+    vocab = SignVocabulary.from_dict(payload["vocabulary"])
+    dims = SMLMDims(**payload["dims"])
+    model = SignMotionLM(SMLMConfig(**payload["config"]), dims, backbone_config=payload["backbone_config"])
+    model.load_state_dict(payload["state_dict"])
+    model.to(device).eval()
+    return LoadedSMLM(model, vocab, payload["epoch"], payload["step"], payload["data_version"],
+                      dict(payload["metrics"]), dict(payload.get("train_config", {})))

@@ -1,0 +1,157 @@
+"""Sign Motion Language Model (M3T Sec. 3.3, App. 0.D.2): an mBART encoder-decoder over the joint
+text + motion vocabulary, with fused motion inputs and five linear output heads.
+
+- **Input fusion.** One position per time step: the embeddings of the step's four motion tokens
+  (body, left hand, right hand, face) are averaged with equal weights. Prompts are fused the same way
+  (``<ASL_B>``, ``<ASL_LH>``, ... -> one prompt position), and so is the end of a motion sequence.
+- **Heads.** ``text`` (the spoken-language ids), ``body``, ``left_hand``, ``right_hand``, ``face``
+  (codes + EOS); each reads the decoder's last hidden state and predicts only its own vocabulary.
+- **Production** (text -> motion): text ids into the encoder, fused motion into the decoder, the four
+  motion heads. **Translation** (motion -> text): fused motion into the encoder, text into the decoder,
+  the text head. Both share every parameter.
+
+The backbone is ``transformers``' ``MBartModel``: built from :class:`SMLMConfig` (small presets train on a
+CPU), or loaded from a local mbart-large-cc25 checkpoint (``pretrained_path``) and resized to the joint
+vocabulary. Embeddings go through MBart's own (scaled) embedding module, so pretrained weights see the
+inputs they were trained on.
+
+Axis legend: B batch, L text positions, U motion steps, S = 4 motion streams, D hidden size.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
+
+HEADS = ("text", *MOTION_STREAMS)
+
+
+@dataclass(frozen=True)
+class SMLMConfig:
+    """Model and vocabulary sizes (params section ``smlm``). Paper: mbart-large-cc25, 12 + 12 layers, 1024."""
+
+    d_model: int = 128
+    encoder_layers: int = 2
+    decoder_layers: int = 2
+    attention_heads: int = 4
+    ffn_dim: int = 512
+    dropout: float = 0.1
+    max_text_tokens: int = 64  # longer input text is refused with a clear error
+    max_motion_tokens: int = 256  # motion steps per clip (4 frames each); longer clips are skipped in training
+    text_vocab_size: int = 1000  # upper bound for the tokenizer trained on the corpus text
+    text_model_path: str = ""  # local mBART folder with sentencepiece.bpe.model; "" = train on the corpus
+    pretrained_path: str = ""  # local mbart-large-cc25 weights; "" = random init
+
+
+@dataclass(frozen=True)
+class SMLMDims:
+    """The data-dependent sizes: vocabulary, heads and special ids (from :class:`SignVocabulary`)."""
+
+    vocab_size: int
+    head_sizes: dict[str, int]
+    pad_id: int
+    eos_id: int
+
+    @classmethod
+    def from_vocabulary(cls, vocab: SignVocabulary) -> SMLMDims:
+        return cls(len(vocab), {h: vocab.head_size(h) for h in HEADS}, vocab.pad_id, vocab.eos_id)
+
+
+@dataclass
+class DecoderOutput:
+    hidden: torch.Tensor  # (B, U, D)
+    cache: object | None  # transformers Cache for the next step
+
+
+def _mbart_config(cfg: SMLMConfig, dims: SMLMDims):
+    from transformers import MBartConfig
+
+    return MBartConfig(
+        vocab_size=dims.vocab_size, d_model=cfg.d_model, encoder_layers=cfg.encoder_layers,
+        decoder_layers=cfg.decoder_layers, encoder_attention_heads=cfg.attention_heads,
+        decoder_attention_heads=cfg.attention_heads, encoder_ffn_dim=cfg.ffn_dim, decoder_ffn_dim=cfg.ffn_dim,
+        dropout=cfg.dropout, attention_dropout=cfg.dropout, activation_dropout=0.0,
+        max_position_embeddings=max(cfg.max_text_tokens, cfg.max_motion_tokens) + 4,
+        pad_token_id=dims.pad_id, eos_token_id=dims.eos_id, bos_token_id=dims.eos_id,
+        decoder_start_token_id=dims.eos_id, scale_embedding=True, tie_word_embeddings=False)
+
+
+def load_backbone(cfg: SMLMConfig, dims: SMLMDims, backbone_config: dict | None = None) -> nn.Module:
+    """A fresh MBart from ``cfg``, the local pretrained one, or (``backbone_config``, from a checkpoint) the
+    exact architecture a checkpoint was trained with, weights to be loaded by the caller."""
+    from transformers import MBartConfig, MBartModel
+
+    if backbone_config is not None:
+        return MBartModel(MBartConfig.from_dict(backbone_config))
+    if not cfg.pretrained_path:
+        return MBartModel(_mbart_config(cfg, dims))
+    path = Path(cfg.pretrained_path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(
+            f"no mBART checkpoint in {path} (config.json missing): download facebook/mbart-large-cc25 on a machine "
+            "with internet (huggingface-cli download facebook/mbart-large-cc25 --local-dir <dir>), copy the folder "
+            "here and set smlm.pretrained_path and smlm.text_model_path to it; or set both to '' for a random init")
+    backbone = MBartModel.from_pretrained(str(path), local_files_only=True)
+    if backbone.config.d_model != cfg.d_model:
+        raise ValueError(f"smlm.d_model is {cfg.d_model} but the checkpoint in {path} has {backbone.config.d_model}; "
+                         "use the paper preset (d_model 1024) with mbart-large-cc25")
+    backbone.resize_token_embeddings(dims.vocab_size)
+    return backbone
+
+
+class SignMotionLM(nn.Module):
+    def __init__(self, cfg: SMLMConfig, dims: SMLMDims, backbone_config: dict | None = None):
+        super().__init__()
+        self.cfg, self.dims = cfg, dims
+        self.backbone = load_backbone(cfg, dims, backbone_config)
+        d = self.backbone.config.d_model
+        self.heads = nn.ModuleDict({h: nn.Linear(d, n, bias=False) for h, n in dims.head_sizes.items()})
+        if cfg.pretrained_path and backbone_config is None:  # the text head starts as mBART's tied output projection over the text ids
+            with torch.no_grad():
+                rows = self.backbone.get_input_embeddings().weight[: dims.head_sizes["text"]]
+                self.heads["text"].weight.copy_(rows)
+
+    # ---- embeddings ----------------------------------------------------------------------------
+    def embed(self, ids: torch.Tensor) -> torch.Tensor:
+        """(B, L) global ids -> (B, L, D), MBart's scaled embedding."""
+        return self.backbone.get_input_embeddings()(ids)
+
+    def embed_fused(self, ids: torch.Tensor) -> torch.Tensor:
+        """(B, U, S) global ids of the S streams of each step -> (B, U, D): the equal-weight average."""
+        return self.embed(ids).mean(dim=2)
+
+    # ---- encoder / decoder -----------------------------------------------------------------------
+    def encode(self, embeds: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """(B, L, D) input embeddings + (B, L) mask -> (B, L, D) encoder states."""
+        return self.backbone.get_encoder()(inputs_embeds=embeds, attention_mask=mask).last_hidden_state
+
+    def decode(self, embeds: torch.Tensor, memory: torch.Tensor, memory_mask: torch.Tensor,
+               mask: torch.Tensor | None = None, cache: object | None = None, use_cache: bool = False) -> DecoderOutput:
+        """(B, U, D) decoder input embeddings (only the new steps when ``cache`` is given) -> hidden states."""
+        out = self.backbone.get_decoder()(
+            inputs_embeds=embeds, attention_mask=mask, encoder_hidden_states=memory,
+            encoder_attention_mask=memory_mask, past_key_values=cache, use_cache=use_cache)
+        return DecoderOutput(out.last_hidden_state, out.past_key_values if use_cache else None)
+
+    def logits(self, hidden: torch.Tensor, heads: tuple[str, ...]) -> dict[str, torch.Tensor]:
+        """(B, U, D) -> {head: (B, U, classes of that head)}."""
+        return {h: self.heads[h](hidden) for h in heads}
+
+    # ---- the two tasks (teacher forcing) -----------------------------------------------------------
+    def production(self, text_ids: torch.Tensor, text_mask: torch.Tensor, motion_in: torch.Tensor,
+                   motion_mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """text (B, L) -> logits of the four motion heads at every decoder step (B, U, C_m + 1)."""
+        memory = self.encode(self.embed(text_ids), text_mask)
+        hidden = self.decode(self.embed_fused(motion_in), memory, text_mask, motion_mask).hidden
+        return self.logits(hidden, MOTION_STREAMS)
+
+    def translation(self, motion_ids: torch.Tensor, motion_mask: torch.Tensor, text_in: torch.Tensor,
+                    text_mask: torch.Tensor) -> torch.Tensor:
+        """fused motion (B, U, S) -> text logits (B, L, T)."""
+        memory = self.encode(self.embed_fused(motion_ids), motion_mask)
+        hidden = self.decode(self.embed(text_in), memory, motion_mask, text_mask).hidden
+        return self.heads["text"](hidden)

@@ -1,0 +1,192 @@
+"""Training the SMLM (M3T Sec. 3.3, App. 0.D.2): AdamW, cosine 2e-4 -> 1e-6, cross-entropy on both tasks,
+alternated per batch (translation with probability ``translation_prob``; ``translation_objective: false``
+trains production only, the ablation of Tab. 1), and the checkpoint with the lowest mean validation DTW-JPE
+kept as ``best``.
+
+GPU paths: device from :func:`m3t.runtime.choose_device`, optional bf16 autocast, data-parallel training
+when launched by ``torchrun`` (each rank a disjoint share of every epoch's batches, gradients all-reduced
+every step; the task of a step is drawn from a generator seeded identically on all ranks so they stay in
+lockstep); rank 0 evaluates and saves.
+
+Axis legend: B batch, U motion steps, S streams, K text tokens.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from m3t.runtime import DistributedContext, autocast, choose_device
+from m3t.smlm.checkpoint import save_smlm
+from m3t.smlm.data import IGNORE, Example, ProductionBatch, TranslationBatch, production_batch, translation_batch
+from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
+from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
+from m3t.tokenizers.train import lr_factor
+
+
+@dataclass(frozen=True)
+class SMLMTrainConfig:
+    """``smlm_train`` section (paper: AdamW, cosine 2e-4 -> 1e-6, 200 epochs, batch 32)."""
+
+    tokens_dir: str = "data/tokens/synthetic"
+    shards_dir: str = "data/shards/synthetic"  # fitted motion: the reference of the DTW evaluation
+    tokenizers_dir: str = "models/tokenizers"
+    out_dir: str = "models/smlm"
+    epochs: int = 200
+    batch_size: int = 32
+    lr: float = 2e-4
+    min_lr: float = 1e-6
+    warmup_steps: int = 0
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    translation_objective: bool = True
+    translation_prob: float = 0.5
+    label_smoothing: float = 0.0
+    eval_every: int = 10
+    eval_max_clips: int = 64
+    seed: int = 0
+    device: str = "auto"
+    precision: Literal["fp32", "bf16"] = "fp32"
+
+
+@dataclass
+class SMLMTrainResult:
+    best_path: Path
+    history: list[dict[str, float]] = field(default_factory=list)
+    best: dict[str, float] = field(default_factory=dict)
+    model: SignMotionLM | None = None  # after the last epoch (not the selected one)
+
+
+def production_loss(logits: dict[str, torch.Tensor], targets: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
+    """Mean over the four motion heads of the token cross-entropy. targets (B, U, S), IGNORE on padding."""
+    losses = [F.cross_entropy(logits[s].flatten(0, 1).float(), targets[..., k].flatten(), ignore_index=IGNORE,
+                              label_smoothing=smoothing) for k, s in enumerate(MOTION_STREAMS)]
+    return torch.stack(losses).mean()
+
+
+def translation_loss(logits: torch.Tensor, targets: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
+    """Token cross-entropy of the text head. logits (B, K, T), targets (B, K)."""
+    return F.cross_entropy(logits.flatten(0, 1).float(), targets.flatten(), ignore_index=IGNORE,
+                           label_smoothing=smoothing)
+
+
+def task_loss(model: SignMotionLM, batch: ProductionBatch | TranslationBatch, smoothing: float = 0.0) -> torch.Tensor:
+    if isinstance(batch, ProductionBatch):
+        logits = model.production(batch.text_ids, batch.text_mask, batch.motion_in, batch.motion_mask)
+        return production_loss(logits, batch.targets, smoothing)
+    logits = model.translation(batch.motion_ids, batch.motion_mask, batch.text_in, batch.text_mask)
+    return translation_loss(logits, batch.targets, smoothing)
+
+
+def _to(batch, device: torch.device):
+    return type(batch)(*(getattr(batch, f).to(device) for f in batch.__dataclass_fields__))
+
+
+def train_step(model: SignMotionLM, batch: ProductionBatch | TranslationBatch, optim: torch.optim.Optimizer,
+               scheduler: torch.optim.lr_scheduler.LRScheduler, precision: str = "fp32", grad_clip: float = 0.0,
+               smoothing: float = 0.0) -> dict[str, float]:
+    device = next(model.parameters()).device
+    with autocast(device, precision):
+        loss = task_loss(model, _to(batch, device), smoothing)
+    optim.zero_grad(set_to_none=True)
+    loss.backward()
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        # gradients averaged here rather than by a DDP wrapper: the two tasks use different heads, and the
+        # task methods are not the module's forward() that DDP hooks
+        world = torch.distributed.get_world_size()
+        for p in model.parameters():
+            if p.grad is None:  # a head the task did not use: every rank reduces the same list
+                p.grad = torch.zeros_like(p)
+            torch.distributed.all_reduce(p.grad)
+            p.grad /= world
+    if grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    optim.step()
+    scheduler.step()
+    task = "production" if isinstance(batch, ProductionBatch) else "translation"
+    return {f"{task}_loss": loss.item()}
+
+
+def epoch_batches(examples: Sequence[Example], vocab: SignVocabulary, cfg: SMLMTrainConfig, epoch: int,
+                  rank: int = 0, world_size: int = 1):
+    """This rank's batches of one epoch: shuffled by (seed, epoch), each one task drawn with ``translation_prob``."""
+    order = np.random.default_rng([cfg.seed, epoch]).permutation(len(examples))
+    tasks = np.random.default_rng([cfg.seed, epoch, 1])
+    chunks = [order[i: i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
+    for step in range(steps_per_epoch(len(examples), cfg.batch_size, world_size)):
+        translate = cfg.translation_objective and tasks.random() < cfg.translation_prob  # same on every rank
+        batch = [examples[j] for j in chunks[step * world_size + rank]]
+        yield translation_batch(batch, vocab) if translate else production_batch(batch, vocab)
+
+
+def steps_per_epoch(n_examples: int, batch_size: int, world_size: int = 1) -> int:
+    chunks = -(-n_examples // batch_size)
+    return chunks // world_size if world_size > 1 else chunks
+
+
+def train_smlm(
+    model_cfg: SMLMConfig,
+    cfg: SMLMTrainConfig,
+    vocab: SignVocabulary,
+    train: Sequence[Example],
+    evaluate: Callable[[SignMotionLM], dict[str, float]] | None,
+    data_version: str,
+    best_path: str | Path,
+    on_epoch: Callable[[dict[str, float], int], None] | None = None,
+    dist_ctx: DistributedContext | None = None,
+    progress: bool = True,
+) -> SMLMTrainResult:
+    """Train the SMLM; ``evaluate(model)`` returns validation metrics incl. ``dtw_jpe_mean_m`` (selection)."""
+    from tqdm.auto import tqdm
+
+    if not train:
+        raise ValueError("no training examples: the token shards have no usable clip (see the skipped list)")
+    dist_ctx = dist_ctx or DistributedContext()
+    device = dist_ctx.device if dist_ctx.world_size > 1 else choose_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = SignMotionLM(model_cfg, SMLMDims.from_vocabulary(vocab)).to(device)
+    if dist_ctx.world_size > 1:  # identical start on every rank
+        for p in model.parameters():
+            torch.distributed.broadcast(p.data, 0)
+    per_epoch = steps_per_epoch(len(train), cfg.batch_size, dist_ctx.world_size)
+    if per_epoch == 0:
+        raise ValueError(f"{len(train)} examples make no full batch for {dist_ctx.world_size} ranks; lower batch_size")
+    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    total, floor = cfg.epochs * per_epoch, cfg.min_lr / cfg.lr
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, cfg.warmup_steps, total, floor))
+    result, step, best_score = SMLMTrainResult(Path(best_path)), 0, math.inf
+    bar = tqdm(range(cfg.epochs), desc="smlm", unit="epoch", disable=not progress or not dist_ctx.is_main)
+    for epoch in bar:
+        model.train()
+        sums: dict[str, list[float]] = {}
+        for batch in epoch_batches(train, vocab, cfg, epoch, dist_ctx.rank, dist_ctx.world_size):
+            for k, v in train_step(model, batch, optim, scheduler, cfg.precision, cfg.grad_clip,
+                                   cfg.label_smoothing).items():
+                sums.setdefault(k, []).append(v)
+            step += 1
+        record = {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}
+        record.update(epoch=epoch + 1, lr=optim.param_groups[0]["lr"])
+        if not dist_ctx.is_main:
+            continue
+        evaluated = evaluate is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs)
+        if evaluated:
+            record.update({f"val_{k}": v for k, v in evaluate(model).items()})
+            score = record["val_dtw_jpe_mean_m"]
+        else:  # without an evaluator the last epoch is kept
+            score = -epoch if evaluate is None else math.inf
+        if score < best_score:
+            best_score, result.best = score, dict(record)
+            save_smlm(result.best_path, model, vocab, epoch + 1, step, data_version, record,
+                      {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))})
+        result.history.append(record)
+        bar.set_postfix({k.removeprefix("train_"): f"{v:.3g}" for k, v in record.items() if k.startswith("train_")})
+        if on_epoch is not None:
+            on_epoch(record, epoch + 1)
+    result.model = model
+    return result
