@@ -1,0 +1,260 @@
+"""Already-fitted corpora in community pickle formats, read with the allow-list unpickler (numpy arrays only).
+
+SOKE-style SMPL-X fits (media kind ``smplx_params``)::
+
+    <root>/<split>/<clip_id>/<frame>.pkl    one dict per frame: global_orient (3,), body_pose (63,),
+                                            left_hand_pose (45,), right_hand_pose (45,), jaw_pose (3,),
+                                            expression (>=10,), betas (>=10,); optional leye_pose, reye_pose, transl
+    <root>/<annotation>.csv                 optional: id,text[,gloss,signer,language]
+
+The split is the folder name (``val`` -> ``dev``). :func:`load_smplx_sequence` stacks the frames in numeric order.
+
+slt-style gzip pickles (media kind ``keypoints``): ``<name>.{train,dev,test}`` or ``<name>.<split>.pkl.gz``, each a
+gzip-compressed pickle of a list of ``{name, signer, gloss, text, sign}`` with ``sign`` a (T, D) float array. The
+originals hold torch tensors; those are refused (convert to numpy once), never unpickled.
+"""
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from m3t.corpora.base import (
+    Collector, CorpusAdapter, CorpusError, Listing, load_data_pickle, read_lines, with_kind,
+)
+from m3t.corpora.clip import Clip
+
+SPLIT_DIRS = {"train": "train", "dev": "dev", "val": "dev", "test": "test"}
+SMPLX_DIMS = {"global_orient": 3, "body_pose": 63, "left_hand_pose": 45, "right_hand_pose": 45, "jaw_pose": 3,
+              "expression": None, "betas": None}  # None: any width, the same in every frame
+SMPLX_OPTIONAL = {"leye_pose": 3, "reye_pose": 3, "transl": 3}
+SLT_KEYS = ("name", "signer", "gloss", "text", "sign")
+
+
+class SmplxSequenceError(CorpusError):
+    """A SOKE clip whose frames cannot be stacked; ``file`` is the frame pickle and ``key`` the parameter."""
+
+    def __init__(self, message: str, file: Path, key: str | None):
+        super().__init__(message)
+        self.file, self.key = file, key
+
+
+# ----------------------------------------------------------------------------------------- SOKE
+@dataclass(frozen=True)
+class SokeSmplxConfig:
+    """Options (params.yaml ``corpora.soke_smplx``)."""
+
+    annotation: str = ""  # CSV relative to the root; empty = no text (clips listed with empty text)
+    fps: float = 25.0  # of the source videos the fits were made from
+    language: str = "unknown"
+    validate: bool = False  # load every clip while listing and quarantine those that do not stack
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0:
+            raise ValueError(f"corpora.soke_smplx.fps must be > 0, got {self.fps}")
+
+
+def _frame_files(folder: Path) -> tuple[list[Path], str | None]:
+    """Frame pickles in numeric order, or the problem (a non-numeric name, no frames)."""
+    frames = [p for p in folder.iterdir() if p.suffix == ".pkl"]
+    bad = [p.name for p in frames if not p.stem.isdigit()]
+    if bad:
+        return [], f"frame pickle {bad[0]} has no numeric frame number"
+    if not frames:
+        return [], "missing media (no <frame>.pkl files)"
+    return sorted(frames, key=lambda p: int(p.stem)), None
+
+
+def load_smplx_sequence(path: str | Path) -> dict[str, np.ndarray]:
+    """Stack a SOKE clip folder's frame pickles into (T, D) float32 arrays per SMPL-X key (T frames).
+
+    Raises :class:`SmplxSequenceError` naming the frame file and key for a missing key or an inconsistent shape.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise SmplxSequenceError(f"SMPL-X clip folder {folder} not found", folder, None)
+    files, problem = _frame_files(folder)
+    if problem:
+        raise SmplxSequenceError(f"{folder}: {problem}", folder, None)
+    rows: dict[str, list[np.ndarray]] = {}
+    optional: set[str] = set()
+    for i, file in enumerate(files):
+        frame = load_data_pickle(file, allow_numpy=True)
+        if not isinstance(frame, dict):
+            raise SmplxSequenceError(f"{file}: expected a dict of SMPL-X arrays, found {type(frame).__name__}",
+                                     file, None)
+        if i == 0:
+            optional = {k for k in SMPLX_OPTIONAL if k in frame}
+        for key in (*SMPLX_DIMS, *sorted(optional)):
+            if key not in frame:
+                raise SmplxSequenceError(f"{file}: key {key!r} missing (present in {files[0].name})"
+                                         if key in optional else f"{file}: SMPL-X key {key!r} missing", file, key)
+            value = np.asarray(frame[key], dtype=np.float32).reshape(-1)  # (1, D) and (D,) both occur
+            want = SMPLX_DIMS.get(key) or SMPLX_OPTIONAL.get(key)
+            width = want if want is not None else (rows[key][0].shape[0] if key in rows else value.shape[0])
+            if value.shape[0] != width or value.shape[0] == 0:
+                raise SmplxSequenceError(f"{file}: key {key!r} has {value.shape[0]} values; expected {width}",
+                                         file, key)
+            rows.setdefault(key, []).append(value)
+        extra = set(SMPLX_OPTIONAL) & set(frame) - optional
+        if extra:
+            key = min(extra)
+            raise SmplxSequenceError(f"{file}: key {key!r} present but absent in {files[0].name}", file, key)
+    return {k: np.stack(v) for k, v in rows.items()}  # (T, D)
+
+
+class SokeSmplxCorpus(CorpusAdapter):
+    """Lists SOKE-style per-frame SMPL-X fits, one clip per folder."""
+
+    name = "soke_smplx"
+    config_type = SokeSmplxConfig
+
+    def read_annotation(self, out: Collector) -> dict[str, dict[str, str]] | None:
+        cfg = self.config
+        if not cfg.annotation:
+            return None
+        path = self.root / cfg.annotation
+        lines = read_lines(path, "Set corpora.soke_smplx.annotation to a CSV with columns "
+                                 "id,text[,gloss,signer,language].")
+        reader = csv.DictReader(io.StringIO("\n".join(lines)))
+        if not {"id", "text"} <= set(reader.fieldnames or ()):
+            raise CorpusError(f"{path} line 1: columns {reader.fieldnames}; expected at least id,text "
+                              f"(optional gloss,signer,language)")
+        rows: dict[str, dict[str, str]] = {}
+        for row, record in enumerate(reader, start=2):
+            clip_id = (record.get("id") or "").strip()
+            if not clip_id or None in record:
+                out.quarantine(path, row, clip_id or None, "malformed row: empty id or extra columns")
+            elif clip_id in rows:
+                out.quarantine(path, row, clip_id, "id listed twice")
+            else:
+                rows[clip_id] = {k: (v or "").strip() for k, v in record.items()} | {"row": str(row)}
+        return rows
+
+    def listing(self) -> Listing:
+        cfg = self.config
+        out = Collector(self.root)
+        split_dirs = [self.root / d for d in SPLIT_DIRS if (self.root / d).is_dir()]
+        if not split_dirs:
+            raise CorpusError(f"{self.root} has none of the split folders {', '.join(SPLIT_DIRS)}; point the root at "
+                              f"the folder holding <split>/<clip_id>/<frame>.pkl")
+        notes = self.read_annotation(out)
+        for split_dir in split_dirs:
+            for folder in sorted(p for p in split_dir.iterdir() if p.is_dir()):
+                files, problem = _frame_files(folder)
+                if problem:
+                    out.quarantine(folder, None, folder.name, problem)
+                    continue
+                note = {} if notes is None else notes.get(folder.name)
+                if note is None:
+                    out.quarantine(folder, None, folder.name, f"no row in the annotation {cfg.annotation}")
+                    continue
+                if cfg.validate:
+                    try:
+                        load_smplx_sequence(folder)
+                    except CorpusError as exc:
+                        file = getattr(exc, "file", folder)
+                        out.quarantine(file, None, folder.name, str(exc).removeprefix(f"{file}: "))
+                        continue
+                clip = Clip(id=folder.name, corpus=self.name, split=SPLIT_DIRS[split_dir.name],
+                            language=note.get("language") or cfg.language, signer=note.get("signer") or "unknown",
+                            text=note.get("text", ""), gloss=note.get("gloss", ""),
+                            media=out.rel(folder), fps=cfg.fps,
+                            extra=with_kind("smplx_params", frames=len(files)))
+                out.add(clip, folder, None)
+        return out.listing()
+
+
+# ----------------------------------------------------------------------------------------- slt
+@dataclass(frozen=True)
+class SltPickleConfig:
+    """Options (params.yaml ``corpora.slt_pickle``); ``files`` relative to the root, empty = discover."""
+
+    files: tuple[str, ...] = ()
+    fps: float = 25.0
+    language: str = "unknown"
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0:
+            raise ValueError(f"corpora.slt_pickle.fps must be > 0, got {self.fps}")
+
+
+def split_of_file(path: Path) -> str | None:
+    """Split named by ``x.train`` / ``x.dev`` / ``x.test`` / ``x.<split>.pkl.gz`` / ``<split>.pkl.gz``."""
+    name = path.name.removesuffix(".pkl.gz")
+    return SPLIT_DIRS.get(name.rsplit(".", 1)[-1])
+
+
+def read_slt_pickle(path: str | Path) -> list:
+    """The list of records of one slt-style gzip pickle (numpy arrays allowed, torch tensors refused)."""
+    path = Path(path)
+    data = load_data_pickle(path, allow_numpy=True, compressed=True)
+    if not isinstance(data, list):
+        raise CorpusError(f"{path}: expected a list of {{{', '.join(SLT_KEYS)}}} records, found {type(data).__name__}")
+    return data
+
+
+def _slt_problem(entry: object) -> str | None:
+    if not isinstance(entry, dict):
+        return f"entry is a {type(entry).__name__}, expected a dict with keys {', '.join(SLT_KEYS)}"
+    missing = [k for k in SLT_KEYS if k not in entry]
+    if missing:
+        return f"entry lacks keys {missing}"
+    if not isinstance(entry["name"], str) or not entry["name"]:
+        return "name is not a non-empty string"
+    sign = entry["sign"]
+    if not isinstance(sign, np.ndarray) or sign.ndim != 2 or sign.shape[0] == 0 or sign.dtype.kind != "f":
+        shape = getattr(sign, "shape", type(sign).__name__)
+        return f"sign is {shape}; expected a non-empty (T, D) float array"
+    return None
+
+
+class SltPickleCorpus(CorpusAdapter):
+    """Lists the records of slt-style gzip pickles; media = the pickle file, the record index in extra."""
+
+    name = "slt_pickle"
+    config_type = SltPickleConfig
+
+    def files(self) -> list[Path]:
+        if self.config.files:
+            return [self.root / f for f in self.config.files]
+        found = sorted(p for p in self.root.glob("*")  # a .pkl.gz without a split is listed, then quarantined
+                       if p.is_file() and (split_of_file(p) is not None or p.name.endswith(".pkl.gz")))
+        if not found:
+            raise CorpusError(f"{self.root} holds no <name>.train/.dev/.test or <name>.<split>.pkl.gz files; "
+                              f"point the root at them or set corpora.slt_pickle.files")
+        return found
+
+    def listing(self) -> Listing:
+        cfg = self.config
+        out = Collector(self.root)
+        for path in self.files():
+            split = split_of_file(path)
+            if split is None:
+                out.quarantine(path, None, None, "cannot tell the split from the file name (.train/.dev/.test)")
+                continue
+            for index, entry in enumerate(read_slt_pickle(path)):
+                problem = _slt_problem(entry)
+                if problem:
+                    name = entry.get("name") if isinstance(entry, dict) else None
+                    out.quarantine(path, index, name if isinstance(name, str) else None, problem)
+                    continue
+                clip = Clip(id=entry["name"].replace("/", "__"), corpus=self.name, split=split, language=cfg.language,
+                            signer=str(entry["signer"]), text=str(entry["text"]), gloss=str(entry["gloss"]),
+                            media=out.rel(path), fps=cfg.fps,
+                            extra=with_kind("keypoints", index=index, frames=entry["sign"].shape[0],
+                                            dims=entry["sign"].shape[1], name=entry["name"]))
+                out.add(clip, path, index)
+        return out.listing()
+
+    def sequence(self, clip: Clip) -> np.ndarray:
+        """The (T, D) float32 ``sign`` array of a listed clip (reads its whole pickle file)."""
+        entries = read_slt_pickle(self.root / clip.media)
+        index = int(clip.get("index", "-1"))
+        if not 0 <= index < len(entries) or _slt_problem(entries[index]) or entries[index]["name"] != clip.get("name"):
+            raise CorpusError(f"{self.root / clip.media}: record {index} is no longer clip {clip.id}; "
+                              f"list the corpus again")
+        return entries[index]["sign"].astype(np.float32)

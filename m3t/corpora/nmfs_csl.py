@@ -1,0 +1,147 @@
+"""NMFs-CSL (isolated Chinese Sign Language signs with non-manual features) as labelled video clips.
+
+Layout::
+
+    <root>/dictionary.txt      one class per line: "<index>\\t<gloss>" or "<index> <gloss>"
+    <root>/train.txt           one clip per line: "<relative video path> <class index>"
+    <root>/test.txt
+    <root>/video/...           the videos; list paths are relative to video/ (a path that already starts
+                               with "video/" is taken relative to the root)
+
+The corpus has no dev split. ``dev_fraction`` > 0 moves train clips to ``dev`` when
+``hash_unit(clip id, salt="nmfs_csl-dev") < dev_fraction``: deterministic, independent of file order, and the
+same clip always lands in the same split.
+
+The *confusing* vs *normal* subsets come only from the official subset list the user supplies (option
+``confusing_list``: one class index per line, the confusing classes). They are never inferred from label
+ranges; without the list every clip's subset is ``"unknown"`` and :meth:`NmfsCslCorpus.subset` raises.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import PurePosixPath
+
+from m3t.corpora.base import (
+    Collector, CorpusAdapter, CorpusError, Listing, hash_unit, media_file, read_lines, with_kind,
+)
+from m3t.corpora.clip import Clip
+
+HINT = "Point the corpus root at the NMFs-CSL folder (the one holding dictionary.txt, train.txt, test.txt, video/)."
+SUBSET_HINT = ("NMFs-CSL's confusing / normal subsets are defined only by the official list; set option "
+               "corpora.nmfs_csl.confusing_list to that file (one confusing class index per line).")
+
+
+@dataclass(frozen=True)
+class NmfsCslConfig:
+    """Options (params.yaml ``corpora.nmfs_csl``); paths relative to the root unless absolute."""
+
+    dictionary: str = "dictionary.txt"
+    train_list: str = "train.txt"
+    test_list: str = "test.txt"
+    video_dir: str = "video"
+    confusing_list: str = ""  # the official confusing-class list; empty = subsets unknown
+    fps: float = 30.0
+    dev_fraction: float = 0.0
+    language: str = "CSL"
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0:
+            raise ValueError(f"corpora.nmfs_csl.fps must be > 0, got {self.fps}")
+        if not 0.0 <= self.dev_fraction < 1.0:
+            raise ValueError(f"corpora.nmfs_csl.dev_fraction must be in [0, 1), got {self.dev_fraction}")
+
+
+class NmfsCslCorpus(CorpusAdapter):
+    """Lists NMFs-CSL clips with their class label; subsets only from the official list."""
+
+    name = "nmfs_csl"
+    config_type = NmfsCslConfig
+
+    def read_dictionary(self, out: Collector | None = None) -> dict[int, str]:
+        """class index -> gloss; bad lines are quarantined into ``out`` (or raise when ``out`` is None)."""
+        path = self.root / self.config.dictionary
+        classes: dict[int, str] = {}
+        for row, line in enumerate(read_lines(path, HINT), start=1):
+            if not line.strip():
+                continue
+            parts = line.strip().split(None, 1)
+            problem = None
+            if len(parts) != 2 or not parts[0].isdigit():
+                problem = f"malformed class line {line!r}: expected '<index><tab or space><gloss>'"
+            elif int(parts[0]) in classes:
+                problem = f"class {parts[0]} defined twice"
+            if problem is None:
+                classes[int(parts[0])] = parts[1].strip()
+            elif out is None:
+                raise CorpusError(f"{path} line {row}: {problem}. {HINT}")
+            else:
+                out.quarantine(path, row, None, problem)
+        if not classes:
+            raise CorpusError(f"{path} holds no classes; expected '<index>\\t<gloss>' lines. {HINT}")
+        return classes
+
+    def confusing_classes(self, classes: dict[int, str], out: Collector | None = None) -> frozenset[int] | None:
+        """The official confusing classes, or ``None`` without ``confusing_list``."""
+        if not self.config.confusing_list:
+            return None
+        path = self.root / self.config.confusing_list
+        found: set[int] = set()
+        for row, line in enumerate(read_lines(path, SUBSET_HINT), start=1):
+            text = line.strip()
+            if not text:
+                continue
+            problem = None
+            if not text.isdigit():
+                problem = f"{text!r} is not a class index"
+            elif int(text) not in classes:
+                problem = f"class {text} is not in {self.config.dictionary}"
+            if problem is None:
+                found.add(int(text))
+            elif out is None:
+                raise CorpusError(f"{path} line {row}: {problem}. {SUBSET_HINT}")
+            else:
+                out.quarantine(path, row, None, problem)
+        return frozenset(found)
+
+    def subset(self, label: int) -> str:
+        """``"confusing"`` or ``"normal"`` for a class index; raises without the official list."""
+        classes = self.read_dictionary()
+        confusing = self.confusing_classes(classes)
+        if confusing is None:
+            raise CorpusError(f"the subset of class {label} is unknown. {SUBSET_HINT}")
+        if label not in classes:
+            raise CorpusError(f"class {label} is not in {self.root / self.config.dictionary}")
+        return "confusing" if label in confusing else "normal"
+
+    def listing(self) -> Listing:
+        cfg = self.config
+        out = Collector(self.root)
+        classes = self.read_dictionary(out)
+        confusing = self.confusing_classes(classes, out)
+        for list_name, split in ((cfg.train_list, "train"), (cfg.test_list, "test")):
+            path = self.root / list_name
+            for row, line in enumerate(read_lines(path, HINT), start=1):
+                if not line.strip():
+                    continue
+                parts = line.strip().rsplit(None, 1)  # paths may hold spaces; the label is the last field
+                if len(parts) != 2 or not parts[1].lstrip("-").isdigit():
+                    out.quarantine(path, row, None, f"malformed row {line!r}: expected '<video path> <class index>'")
+                    continue
+                video, label = PurePosixPath(parts[0].replace("\\", "/")), int(parts[1])
+                clip_id = video.with_suffix("").as_posix().replace("/", "__")
+                if label not in classes:
+                    out.quarantine(path, row, clip_id, f"class {label} is not in {cfg.dictionary}")
+                    continue
+                if video.is_absolute() or ".." in video.parts:
+                    out.quarantine(path, row, clip_id, f"video path {video} must be relative")
+                    continue
+                media = video if video.parts[0] == cfg.video_dir else PurePosixPath(cfg.video_dir) / video
+                subset = "unknown" if confusing is None else ("confusing" if label in confusing else "normal")
+                clip_split = split
+                if split == "train" and hash_unit(clip_id, salt="nmfs_csl-dev") < cfg.dev_fraction:
+                    clip_split = "dev"
+                clip = Clip(id=clip_id, corpus=self.name, split=clip_split, language=cfg.language, signer="unknown",
+                            text=classes[label], gloss=classes[label], media=media.as_posix(), fps=cfg.fps,
+                            label=label, extra=with_kind("video", subset=subset, source_split=split))
+                out.add(clip, path, row, media_file)
+        return out.listing()

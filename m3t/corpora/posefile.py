@@ -1,0 +1,206 @@
+"""Collections of ``.pose`` files (the pose-format library) as keypoint clips; the project's one ``.pose`` reader.
+
+Listing reads headers only (:func:`read_pose_info`: fps, frame count, components) and checks that the file is
+as long as its header says, so a truncated file is quarantined without decoding its frames. Clips come from an
+optional index CSV (columns ``id,path,split,text,language,signer`` and optional ``label``; ``path`` relative to
+the root) or, without one, one clip per ``*.pose`` under the root with a deterministic hash split.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import struct
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from m3t.corpora.base import (
+    SPLITS, Collector, CorpusAdapter, CorpusError, Listing, check_fractions, hash_split, read_lines, with_kind,
+)
+from m3t.corpora.clip import Clip
+
+INDEX_COLUMNS = ("id", "path", "split", "text", "language", "signer")
+READ_ERRORS = (struct.error, ValueError, TypeError, EOFError, IndexError, NotImplementedError, UnicodeDecodeError)
+
+
+@dataclass(frozen=True)
+class PoseInfo:
+    """What a ``.pose`` header says; ``components`` = ((name, n_points), ...) in point order."""
+
+    fps: float
+    frames: int
+    people: int
+    components: tuple[tuple[str, int], ...]
+    width: int
+    height: int
+    version: float
+
+
+@dataclass(frozen=True)
+class PoseData:
+    """Person 0 of a ``.pose`` file. points (T, K, 3) float32 (z = 0 for 2D files), confidence (T, K) float32."""
+
+    points: np.ndarray
+    confidence: np.ndarray
+    fps: float
+    components: tuple[tuple[str, int], ...]
+    width: int
+    height: int
+
+
+def _header(path: Path, chunk: int = 1 << 16):
+    """(PoseHeader, reader positioned after it): the first ``chunk`` bytes, grown until the header fits."""
+    from pose_format.pose_header import PoseHeader
+    from pose_format.utils.reader import BufferReader
+
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        while True:
+            fh.seek(0)
+            buffer = fh.read(chunk)
+            try:
+                reader = BufferReader(buffer)
+                header = PoseHeader.read(reader)
+                if len(buffer) >= reader.read_offset + 10 or chunk >= size:  # 10: fps, frames, people of v0.2
+                    return header, reader
+            except struct.error:
+                if chunk >= size:
+                    raise
+            chunk *= 4
+
+
+def read_pose_info(path: str | Path) -> PoseInfo:
+    """Header-only read of a ``.pose`` file; ``CorpusError`` naming the file when unreadable or truncated."""
+    path = Path(path)
+    if not path.is_file():
+        raise CorpusError(f"{path} not found")
+    try:
+        header, reader = _header(path)
+        components = tuple((c.name, len(c.points)) for c in header.components)
+        if round(header.version, 3) != 0.2:  # older layouts store no frame count: decode the body to learn it
+            data = read_pose(path)
+            return PoseInfo(data.fps, data.points.shape[0], 1, components, header.dimensions.width,
+                            header.dimensions.height, header.version)
+        fps, frames, people = struct.unpack_from("<fIH", reader.buffer, reader.read_offset)
+        points, dims = sum(n for _, n in components), header.num_dims()
+        expected = reader.read_offset + 10 + 4 * frames * people * points * (dims + 1)  # data + confidence, float32
+    except CorpusError:
+        raise
+    except (*READ_ERRORS, OSError) as exc:
+        raise CorpusError(f"{path}: unreadable .pose header, truncated or not a .pose file "
+                          f"({type(exc).__name__}: {exc})") from exc
+    actual = path.stat().st_size
+    if actual < expected:
+        raise CorpusError(f"{path}: truncated .pose file ({actual} bytes, the header promises {expected}: {frames} "
+                          f"frames x {people} people x {points} points); re-export it")
+    return PoseInfo(float(fps), int(frames), int(people), components, header.dimensions.width,
+                    header.dimensions.height, header.version)
+
+
+def read_pose(path: str | Path) -> PoseData:
+    """Decode a ``.pose`` file; person 0 only. Masked points get confidence 0."""
+    from pose_format import Pose
+
+    path = Path(path)
+    try:
+        pose = Pose.read(path.read_bytes())
+    except OSError as exc:
+        raise CorpusError(f"{path}: cannot read ({exc})") from exc
+    except READ_ERRORS as exc:
+        raise CorpusError(f"{path}: unreadable or truncated .pose file ({type(exc).__name__}: {exc})") from exc
+    data, conf = pose.body.data, pose.body.confidence  # (T, P, K, D), (T, P, K)
+    if data.ndim != 4 or data.shape[1] == 0:
+        raise CorpusError(f"{path}: no person in the pose body (shape {data.shape})")
+    points = np.ma.getdata(data)[:, 0].astype(np.float32)  # (T, K, D)
+    confidence = np.asarray(conf, dtype=np.float32)[:, 0]  # (T, K)
+    mask = np.ma.getmaskarray(data)[:, 0].any(-1)
+    confidence = np.where(mask, 0.0, confidence).astype(np.float32)
+    if points.shape[-1] < 3:  # 2D files: z = 0 so every reader sees (T, K, 3)
+        points = np.concatenate([points, np.zeros((*points.shape[:2], 3 - points.shape[-1]), np.float32)], -1)
+    header = pose.header
+    return PoseData(points[..., :3], confidence, float(pose.body.fps),
+                    tuple((c.name, len(c.points)) for c in header.components),
+                    int(header.dimensions.width), int(header.dimensions.height))
+
+
+def components_text(components: tuple[tuple[str, int], ...]) -> str:
+    return ",".join(f"{name}:{n}" for name, n in components)
+
+
+@dataclass(frozen=True)
+class PoseFileConfig:
+    """Options (params.yaml ``corpora.posefile``)."""
+
+    index: str = ""  # CSV relative to the root; empty = every *.pose under the root
+    language: str = "unknown"  # without an index
+    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)  # without an index
+
+    def __post_init__(self) -> None:
+        check_fractions(self.split_fractions, "corpora.posefile.split_fractions")
+
+
+class PoseFileCorpus(CorpusAdapter):
+    """Lists a ``.pose`` collection (media kind ``pose``); fps comes from each file's header."""
+
+    name = "posefile"
+    config_type = PoseFileConfig
+
+    def _rows(self, out: Collector) -> list[tuple[Path, int | None, dict[str, str]]]:
+        cfg = self.config
+        if not cfg.index:
+            files = sorted(self.root.rglob("*.pose"))
+            if not files:
+                raise CorpusError(f"no .pose files under {self.root}; check the root or set corpora.posefile.index")
+            rows = []
+            for f in files:
+                rel = PurePosixPath(f.relative_to(self.root).as_posix())
+                clip_id = rel.with_suffix("").as_posix().replace("/", "__")
+                rows.append((f, None, {"id": clip_id, "path": rel.as_posix(), "language": cfg.language,
+                                       "split": hash_split(clip_id, cfg.split_fractions, salt="posefile")}))
+            return rows
+        path = self.root / cfg.index
+        lines = read_lines(path, "Set corpora.posefile.index to the index CSV (relative to the root).")
+        reader = csv.DictReader(io.StringIO("\n".join(lines)))
+        missing = [c for c in INDEX_COLUMNS if c not in (reader.fieldnames or ())]
+        if missing:
+            raise CorpusError(f"{path} line 1: columns {reader.fieldnames} lack {missing}; expected "
+                              f"{','.join(INDEX_COLUMNS)} and optional label")
+        rows = []
+        for row, record in enumerate(reader, start=2):
+            if None in record or any(record.get(c) is None for c in INDEX_COLUMNS):
+                out.quarantine(path, row, record.get("id") or None, "malformed row: wrong number of columns")
+                continue
+            rows.append((path, row, {k: (v or "").strip() for k, v in record.items()}))
+        return rows
+
+    def listing(self) -> Listing:
+        out = Collector(self.root)
+        for file, row, r in self._rows(out):
+            clip_id = r["id"]
+            if not clip_id or not r["path"]:
+                out.quarantine(file, row, clip_id or None, "empty id or path")
+                continue
+            if r["split"] not in SPLITS:
+                out.quarantine(file, row, clip_id, f"split {r['split']!r} unknown; expected one of {', '.join(SPLITS)}")
+                continue
+            label = r.get("label") or None
+            if label is not None and not label.lstrip("-").isdigit():
+                out.quarantine(file, row, clip_id, f"label {label!r} is not an integer")
+                continue
+            media = self.root / r["path"]
+            if not media.is_file():
+                out.quarantine(file, row, clip_id, f"missing media: {r['path']}")
+                continue
+            try:
+                info = read_pose_info(media)
+            except CorpusError as exc:
+                out.quarantine(file, row, clip_id, str(exc).replace(str(media), r["path"]))
+                continue
+            clip = Clip(id=clip_id, corpus=self.name, split=r["split"], language=r.get("language") or "unknown",
+                        signer=r.get("signer") or "unknown", text=r.get("text", ""), gloss=r.get("gloss", ""),
+                        media=r["path"], fps=info.fps, label=None if label is None else int(label),
+                        extra=with_kind("pose", frames=info.frames, people=info.people,
+                                        components=components_text(info.components)))
+            out.add(clip, file, row)
+        return out.listing()
