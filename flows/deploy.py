@@ -2,6 +2,8 @@
 
     fit-corpus/embedded         the embedded corpus with params.yaml (prefect deployment run fit-corpus/embedded)
     train-tokenizers/embedded   tokenizers + token shards (prefect deployment run train-tokenizers/embedded)
+    smlm/embedded               train + generate + evaluate the SMLM (prefect deployment run smlm/embedded)
+    evaluate-smlm/nightly       re-evaluates the current SMLM checkpoint every night at 03:00 (cron)
 """
 from __future__ import annotations
 
@@ -10,16 +12,21 @@ import argparse
 from prefect import serve
 
 from flows.fit_corpus import fit_corpus
+from flows.smlm import evaluate_smlm_flow, smlm_flow
 from flows.tokenizers import train_tokenizers_flow
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--cron", default="0 3 * * *", help="schedule of evaluate-smlm/nightly")
     args = parser.parse_args()
     embedded = fit_corpus.to_deployment(name="embedded", parameters={"params_path": args.params})
     tokenizers = train_tokenizers_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
-    serve(embedded, tokenizers)
+    smlm = smlm_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
+    nightly = evaluate_smlm_flow.to_deployment(name="nightly", parameters={"params_path": args.params},
+                                               cron=args.cron)
+    serve(embedded, tokenizers, smlm, nightly)
 
 
 if __name__ == "__main__":

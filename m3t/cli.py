@@ -7,6 +7,7 @@
     m3t ablate-tokenizers [--full] [--dry-run] [--widths ...]
                                           the Tab. 3 sweep: one `dvc exp run --temp -S ...` per setting
     m3t tokenizer-table                   print the Tab. 3-style comparison from MLflow
+    m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
 """
 from __future__ import annotations
 
@@ -96,6 +97,15 @@ def _cmd_tokenizer_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_smlm_table(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+    from m3t.smlm.table import production_table
+
+    print(production_table(fetch_runs(load_params(args.params).experiment, stage="evaluate-smlm")))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -119,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_ablate)
     p = sub.add_parser("tokenizer-table", help="print the Tab. 3-style tokenizer comparison from MLflow")
     p.set_defaults(func=_cmd_tokenizer_table)
+    p = sub.add_parser("smlm-table", help="print the Tab. 1-style SMLM comparison from MLflow")
+    p.set_defaults(func=_cmd_smlm_table)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -20,7 +20,10 @@ from m3t.body.factory import BodyConfig
 from m3t.corpora.synthetic import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
 from m3t.fitting.fit import FittingConfig
+from m3t.smlm.model import SMLMConfig
+from m3t.smlm.train import SMLMTrainConfig
 from m3t.stages.fit_corpus import FitCorpusConfig
+from m3t.stages.generate_smlm import GenerateConfig
 from m3t.stages.tokenize import TokenizeConfig
 from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig
 from m3t.trackers.simulated import SimulatedTrackerConfig
@@ -44,6 +47,9 @@ class Params:
     tokenizer: TokenizerConfig
     tokenizer_train: TokenizerTrainConfig
     tokenize: TokenizeConfig
+    smlm: SMLMConfig
+    smlm_train: SMLMTrainConfig
+    smlm_generate: GenerateConfig
 
 
 SECTIONS: dict[str, type] = {f.name: f.type for f in fields(Params)}

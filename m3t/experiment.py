@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -104,6 +104,7 @@ class RunRecord:
     params: dict[str, str]
     metrics: dict[str, float]
     artifact_dir: Path | None  # local artifact folder when the store is on this machine
+    tags: dict[str, str] = field(default_factory=dict)
 
 
 def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None = None) -> list[RunRecord]:
@@ -122,5 +123,6 @@ def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None 
         uri = urlparse(run.info.artifact_uri)
         local = Path(unquote(uri.path)) if uri.scheme in ("", "file") else None
         records.append(RunRecord(run.info.run_id, run.data.tags.get("stage", run.info.run_name or ""), run.info.start_time,
-                                 run.info.status, dict(run.data.params), dict(run.data.metrics), local))
+                                 run.info.status, dict(run.data.params), dict(run.data.metrics), local,
+                                 dict(run.data.tags)))
     return records

@@ -1,1 +1,1 @@
-"""Metrics shared by every model: codebook statistics, vertex errors (and, later, DTW joint errors)."""
+"""Metrics used by every model: DTW joint / vertex errors (dtw, procrustes, motion), BLEU-4 / ROUGE-L (text), codebook statistics, vertex errors."""

@@ -55,8 +55,8 @@ class _Stepper:
 
 @torch.no_grad()
 def generate_motion(model: SignMotionLM, vocab: SignVocabulary, texts: Sequence[str], languages: Sequence[str],
-                    max_steps: int | None = None, use_cache: bool = True) -> list[GeneratedMotion]:
-    """Text -> motion tokens for a batch of sentences (production)."""
+                    max_steps: int | None = None, use_cache: bool = True, min_steps: int = 0) -> list[GeneratedMotion]:
+    """Text -> motion tokens for a batch of sentences (production); EOS is not allowed before ``min_steps``."""
     _check_batch(texts, languages, vocab)
     max_steps = max_steps or model.cfg.max_motion_tokens
     model.eval()
@@ -71,7 +71,11 @@ def generate_motion(model: SignMotionLM, vocab: SignVocabulary, texts: Sequence[
     steps, lengths = [], np.full(batch, -1)
     for u in range(max_steps):
         hidden = stepper(step)
-        local = torch.stack([model.heads[s](hidden).argmax(-1) for s in MOTION_STREAMS], dim=-1)  # (B, S)
+        logits = [model.heads[s](hidden) for s in MOTION_STREAMS]
+        if u < min_steps:
+            for lg in logits:
+                lg[..., -1] = float("-inf")  # the EOS class is each motion head's last
+        local = torch.stack([lg.argmax(-1) for lg in logits], dim=-1)  # (B, S)
         ended = (local == eos).any(-1).cpu().numpy()
         lengths[(lengths < 0) & ended] = u
         steps.append(local.cpu().numpy())

@@ -1,0 +1,62 @@
+"""Prefect flows of the Sign Motion Language Model.
+
+- ``smlm``: token shards -> train-smlm -> generate-smlm -> evaluate-smlm (deployment ``smlm/embedded``);
+- ``evaluate-smlm``: generate + evaluate with the current checkpoint only (deployment
+  ``evaluate-smlm/nightly``, on a cron schedule: re-evaluates whatever checkpoint is in place).
+
+Thin tasks over :mod:`m3t.stages`; training is not retried (a failure there is not transient), the
+generation / evaluation tasks are (they read and write files).
+"""
+from __future__ import annotations
+
+from prefect import flow, get_run_logger, task
+from prefect.cache_policies import NO_CACHE
+
+from m3t.config import Params, load_params
+from m3t.stages import evaluate_smlm as evaluate_stage
+from m3t.stages import generate_smlm as generate_stage
+from m3t.stages import train_smlm as train_stage
+
+
+@task(cache_policy=NO_CACHE)
+def train_smlm(params: Params) -> dict:
+    return train_stage.train_and_log(params, progress=False)
+
+
+@task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
+def generate(params: Params) -> dict:
+    from m3t.body.factory import load_body_model
+
+    return generate_stage.run_generate(params.smlm_generate, load_body_model(params.body), progress=False)
+
+
+@task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
+def evaluate(params: Params) -> dict:
+    return evaluate_stage.evaluate_and_log(params)
+
+
+def _headline(summary: dict) -> str:
+    keys = ("dtw_jpe_body_m", "dtw_jpe_hand_m", "dtw_pa_jpe_body_m", "dtw_pa_jpe_hand_m", "translation_bleu4")
+    return ", ".join(f"{k} {summary[k]:.3f}" for k in keys if k in summary)
+
+
+@flow(name="evaluate-smlm", log_prints=True)
+def evaluate_smlm_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
+    """Generate with the current checkpoint and score it (logged to MLflow)."""
+    params = load_params(params_path, preset=preset)
+    generated = generate(params)
+    summary = evaluate(params)
+    get_run_logger().info("generated %s; %s", generated, _headline(summary))
+    return summary
+
+
+@flow(name="smlm", log_prints=True)
+def smlm_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
+    """Train the SMLM on the token shards, then generate and evaluate on the configured split."""
+    params = load_params(params_path, preset=preset)
+    report = train_smlm(params)
+    get_run_logger().info("trained: best epoch %s", report.get("best_epoch"))
+    generated = generate(params)
+    summary = evaluate(params)
+    get_run_logger().info("generated %s; %s", generated, _headline(summary))
+    return {"train": report, "evaluation": summary}

@@ -1,0 +1,159 @@
+"""DTW joint errors of produced motion against ground truth (M3T Tab. 1, SOKE's evaluation).
+
+Per (prediction, ground truth) sequence pair and per region of ``m3t.body.metric_sets`` (``body``: 12 points,
+neck first; ``left_hand`` / ``right_hand``: 21 points, wrist first; ``face``: vertices), on plain (T, K, 3)
+arrays in metres, so no body model is needed here:
+
+- ``dtw_jpe_<region>_m``: DTW raw accumulated cost of the root-relative mean point distance (SOKE
+  ``dist_jpe``); for the face it is named ``dtw_vpe_face_m`` (vertices, same root-relative distance);
+- ``dtw_pa_jpe_<region>_m``: the same with the distance after a similarity Procrustes of every
+  prediction frame onto every ground-truth frame (SOKE ``dist_pa``), for ``procrustes_regions``;
+- ``..._pathnorm_m``: the raw cost divided by the warping-path length (a mean per aligned frame pair);
+- ``dtw_jpe_hand_m`` etc.: the mean of the left- and right-hand values, when both hands are given.
+
+Raw costs grow with sequence length (SOKE reports them so); the path-normalised ones compare across lengths.
+
+Axis legend: T1 prediction frames, T2 ground-truth frames, K points of a region.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from m3t.metrics.dtw import dtw_padded, jpe_distance_matrix
+from m3t.metrics.procrustes import pa_distance_matrix
+
+Regions = Mapping[str, "np.ndarray | torch.Tensor"]
+
+
+@dataclass(frozen=True)
+class MotionMetricsConfig:
+    """Which regions get DTW-PA (Procrustes per frame pair is the costly part), the solver, the batch size."""
+
+    procrustes_regions: tuple[str, ...] = ("body", "left_hand", "right_hand")
+    procrustes_method: str = "quaternion"
+    batch_pairs: int = 16  # sequence pairs whose DTW tables are swept together
+    # Threads computing cost matrices concurrently (torch releases the GIL inside ops). With workers > 1 set
+    # torch.set_num_threads(1): intra-op threads on top oversubscribe the cores, and on a shared machine an
+    # OpenMP barrier waiting for a descheduled thread was measured 10-30x slower.
+    workers: int = 1
+
+
+def error_name(region: str, procrustes: bool) -> str:
+    """Metric stem of a region: ``dtw_jpe_body``, ``dtw_pa_jpe_left_hand``, ``dtw_vpe_face``, ..."""
+    error = "vpe" if region == "face" else "jpe"
+    return f"dtw_{'pa_' if procrustes else ''}{error}_{region}"
+
+
+def _region_tensor(value: object, side: str, region: str, index: int) -> torch.Tensor:
+    where = f"pair {index}, region {region!r}, {side}"
+    try:
+        tensor = torch.as_tensor(value if isinstance(value, torch.Tensor) else np.asarray(value), dtype=torch.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: cannot read as a float array ({exc})") from exc
+    if tensor.ndim != 3 or tensor.shape[-1] != 3:
+        raise ValueError(f"{where}: shape {tuple(tensor.shape)}, expected (T, K, 3) points in metres")
+    if tensor.shape[0] == 0 or tensor.shape[1] == 0:
+        raise ValueError(f"{where}: empty sequence of shape {tuple(tensor.shape)}; drop the pair or fix its frames")
+    if not bool(torch.isfinite(tensor).all()):
+        bad = int((~torch.isfinite(tensor)).any(-1).any(-1).nonzero()[0, 0])
+        raise ValueError(f"{where}: non-finite values (first in frame {bad}) in shape {tuple(tensor.shape)}")
+    return tensor
+
+
+def _validated(pred: Regions, gt: Regions, index: int) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """{region: (pred (T1, K, 3), gt (T2, K, 3))} float64, after checking both sides agree."""
+    if set(pred) != set(gt):
+        only_pred, only_gt = sorted(set(pred) - set(gt)), sorted(set(gt) - set(pred))
+        raise ValueError(f"pair {index}: regions differ, only in prediction {only_pred}, only in ground truth "
+                         f"{only_gt}; give both sides the same regions")
+    if not pred:
+        raise ValueError(f"pair {index}: no regions given; expected e.g. body, left_hand, right_hand, face")
+    out = {}
+    for region in pred:
+        p = _region_tensor(pred[region], "prediction", region, index)
+        g = _region_tensor(gt[region], "ground truth", region, index)
+        if p.shape[1] != g.shape[1]:
+            raise ValueError(f"pair {index}, region {region!r}: prediction {tuple(p.shape)} and ground truth "
+                             f"{tuple(g.shape)} have different point counts; use the same metric set on both")
+        out[region] = (p, g)
+    return out
+
+
+def _add_hand_means(metrics: dict[str, float]) -> None:
+    """``..._hand_...`` = mean of the left- and right-hand entries, for every metric both hands have."""
+    for name in [n for n in metrics if "_left_hand_" in n]:
+        right = name.replace("_left_hand_", "_right_hand_")
+        if right in metrics:
+            metrics[name.replace("_left_hand_", "_hand_")] = 0.5 * (metrics[name] + metrics[right])
+
+
+def _cost_tables(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jobs: list[tuple[int, str, bool]],
+                 config: MotionMetricsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-padded (T1, T2, jobs) cost matrices of (pair, region, procrustes) jobs, and their (jobs, 2) sizes."""
+    lengths = np.array([[checked[n][r][0].shape[0], checked[n][r][1].shape[0]] for n, r, _ in jobs])
+    tables = torch.zeros(*lengths.max(0), len(jobs), dtype=torch.float64)
+
+    def fill(b: int) -> None:
+        n, region, pa = jobs[b]
+        p, g = checked[n][region]
+        cost = pa_distance_matrix(p, g, config.procrustes_method) if pa else jpe_distance_matrix(p, g)
+        tables[:p.shape[0], :g.shape[0], b] = cost.cpu()  # each job owns its slice of the batch
+
+    if config.workers > 1:
+        with ThreadPoolExecutor(config.workers) as pool:
+            list(pool.map(fill, range(len(jobs))))
+    else:
+        for b in range(len(jobs)):
+            fill(b)
+    return tables.numpy(), lengths
+
+
+def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = False,
+                   config: MotionMetricsConfig = MotionMetricsConfig()) -> list[dict[str, float]]:
+    """DTW metrics of many (prediction, ground truth) pairs, each a dict of region -> (T, K, 3) metres.
+
+    Pairs are validated first (a bad one raises ``ValueError`` naming it before any work), then processed in
+    batches of similar length so that their DTW tables are swept together. Returns one metrics dict per pair,
+    in input order.
+    """
+    checked = [_validated(p, g, n) for n, (p, g) in enumerate(pairs)]
+    results: list[dict[str, float]] = [{} for _ in checked]
+    # Similar lengths together keep the zero padding of each batch small.
+    order = sorted(range(len(checked)), key=lambda n: max(p.shape[0] + g.shape[0] for p, g in checked[n].values()))
+    with tqdm(total=len(checked), desc="dtw", unit="pair", disable=not progress) as bar:
+        for start in range(0, len(order), config.batch_pairs):
+            batch = order[start:start + config.batch_pairs]
+            jobs = [(n, region, pa) for n in batch for region in checked[n]
+                    for pa in ((False, True) if region in config.procrustes_regions else (False,))]
+            for (n, region, pa), res in zip(jobs, dtw_padded(*_cost_tables(checked, jobs, config))):
+                stem = error_name(region, pa)
+                results[n][f"{stem}_m"] = res.cost_raw
+                results[n][f"{stem}_pathnorm_m"] = res.cost_pathnorm
+            bar.update(len(batch))
+    for metrics in results:
+        _add_hand_means(metrics)
+    return results
+
+
+def sequence_metrics(pred: Regions, gt: Regions,
+                     config: MotionMetricsConfig = MotionMetricsConfig()) -> dict[str, float]:
+    """DTW metrics of one pair: pred {region: (T1, K, 3)} against gt {region: (T2, K, 3)}, metres."""
+    return evaluate_pairs([(pred, gt)], config=config)[0]
+
+
+def summarise(results: Sequence[Mapping[str, float]]) -> dict[str, float]:
+    """Mean of every metric over pairs (all pairs must report the same metrics)."""
+    if not results:
+        raise ValueError("no per-pair metrics to summarise; evaluate at least one pair")
+    names = list(results[0])
+    for n, metrics in enumerate(results):
+        if set(metrics) != set(names):
+            raise ValueError(f"pair {n} reports {sorted(set(metrics) ^ set(names))} unlike pair 0; evaluate all pairs "
+                             f"with the same regions and config")
+    return {name: float(np.mean([m[name] for m in results])) for name in names}

@@ -1,0 +1,36 @@
+"""The M3T Tab. 1-style comparison from MLflow: one row per SMLM variant (newest finished evaluate-smlm run
+of each), columns DTW-PA-JPE and DTW-JPE for body and hands per ``<corpus>/<language>`` group.
+
+Values are SOKE's raw DTW accumulated cost in metres (the numbers of the paper's table); the
+path-length-normalised variant is in the run's metrics as ``..._pathnorm_m``.
+"""
+from __future__ import annotations
+
+import math
+
+from m3t.experiment import RunRecord
+
+COLUMNS = (("dtw_pa_jpe_body_m", "PA body"), ("dtw_pa_jpe_hand_m", "PA hand"),
+           ("dtw_jpe_body_m", "JPE body"), ("dtw_jpe_hand_m", "JPE hand"))
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None or math.isnan(value) else f"{value:.3f}"
+
+
+def production_table(records: list[RunRecord], variant_tag: str = "variant") -> str:
+    """Markdown table over the newest finished run of each variant; ``records`` newest first."""
+    rows: dict[str, RunRecord] = {}
+    for record in records:
+        if record.status == "FINISHED":
+            rows.setdefault(record.tags.get(variant_tag, record.run_id[:8]), record)
+    if not rows:
+        return "no finished evaluate-smlm runs yet: run `dvc repro evaluate-smlm`"
+    groups = sorted({k.rsplit("/", 1)[0] for r in rows.values() for k in r.metrics if k.endswith("/dtw_jpe_body_m")})
+    header = "| variant | " + " | ".join(f"{g} {label}" for g in groups for _, label in COLUMNS) + " | BLEU-4 |"
+    lines = [header, "|" + "---|" * (2 + len(groups) * len(COLUMNS))]
+    for name, record in sorted(rows.items()):
+        cells = [_fmt(record.metrics.get(f"{g}/{key}")) for g in groups for key, _ in COLUMNS]
+        bleu = record.metrics.get("translation_bleu4")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {'-' if bleu is None else f'{bleu:.2f}'} |")
+    return "\n".join(lines)

@@ -1,0 +1,275 @@
+"""DTW-JPE / DTW-PA-JPE against a brute-force reference (plain loops, numpy SVD per frame pair, full DP table)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from m3t.metrics.dtw import dtw, dtw_batch, jpe_distance_matrix
+from m3t.metrics.motion import (
+    MotionMetricsConfig,
+    evaluate_pairs,
+    sequence_metrics,
+    summarise,
+)
+from m3t.metrics.procrustes import (
+    pa_distance_matrix,
+    rotation_from_covariance,
+    similarity_align,
+)
+
+# ---------------------------------------------------------------- brute-force reference (SOKE's definitions)
+
+
+def ref_align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Classic compute_similarity_transform: x (K, 3) aligned onto y (K, 3)."""
+    mu1, mu2 = x.mean(0), y.mean(0)
+    x1, x2 = (x - mu1).T, (y - mu2).T
+    k = x1 @ x2.T
+    u, _, vh = np.linalg.svd(k)
+    v = vh.T
+    z = np.eye(3)
+    z[-1, -1] = np.sign(np.linalg.det(u @ v.T))
+    r = v @ z @ u.T
+    scale = np.trace(r @ k) / (x1 ** 2).sum()
+    return (scale * r @ x.T).T + (mu2 - scale * r @ mu1)
+
+
+def ref_jpe(x: np.ndarray, y: np.ndarray) -> float:
+    return float(np.linalg.norm((x - x[0]) - (y - y[0]), axis=-1).mean())
+
+
+def ref_pa(x: np.ndarray, y: np.ndarray) -> float:
+    return float(np.linalg.norm(ref_align(x, y) - y, axis=-1).mean())
+
+
+def ref_dtw(cost: np.ndarray) -> tuple[float, list[tuple[int, int]]]:
+    t1, t2 = cost.shape
+    d = np.full((t1, t2), np.inf)
+    for i in range(t1):
+        for j in range(t2):
+            if i == 0 and j == 0:
+                d[i, j] = cost[0, 0]
+                continue
+            up, left = d[i - 1, j] if i else np.inf, d[i, j - 1] if j else np.inf
+            best = min(up, left, d[i - 1, j - 1] if i and j else np.inf)
+            d[i, j] = cost[i, j] + best
+    i, j = t1 - 1, t2 - 1
+    path = [(i, j)]
+    while (i, j) != (0, 0):
+        if i == 0:
+            j -= 1
+        elif j == 0:
+            i -= 1
+        elif d[i - 1, j - 1] <= min(d[i - 1, j], d[i, j - 1]):
+            i, j = i - 1, j - 1
+        elif d[i - 1, j] <= d[i, j - 1]:
+            i -= 1
+        else:
+            j -= 1
+        path.append((i, j))
+    return float(d[-1, -1]), path[::-1]
+
+
+def ref_sequence(pred: np.ndarray, gt: np.ndarray, dist) -> tuple[float, list[tuple[int, int]]]:
+    return ref_dtw(np.array([[dist(p, g) for g in gt] for p in pred]))
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def motion(rng: np.random.Generator, frames: int, points: int) -> np.ndarray:
+    """(T, K, 3) a random rest shape (~10 cm) that drifts and wobbles smoothly, in metres."""
+    rest = rng.normal(scale=0.1, size=(points, 3))
+    drift = np.cumsum(rng.normal(scale=0.01, size=(frames, points, 3)), axis=0)
+    return rest + drift
+
+
+def regions(rng: np.random.Generator, frames: int) -> dict[str, np.ndarray]:
+    return {"body": motion(rng, frames, 12), "left_hand": motion(rng, frames, 21),
+            "right_hand": motion(rng, frames, 21)}
+
+
+def similarity_copy(x: np.ndarray, rng: np.random.Generator, per_frame: bool = True) -> np.ndarray:
+    """(T, K, 3) every frame rotated, scaled and translated (independently per frame if per_frame)."""
+    n = len(x) if per_frame else 1
+    rot = Rotation.random(n, random_state=int(rng.integers(1 << 30))).as_matrix()
+    scale = rng.uniform(0.5, 2.0, size=(n, 1, 1))
+    shift = rng.normal(size=(n, 1, 3))
+    return scale * np.einsum("tab,tkb->tka", rot, x) + shift
+
+
+T = torch.as_tensor
+LENGTHS = [(1, 1), (1, 6), (5, 1), (7, 7), (9, 4), (6, 13)]
+
+# ---------------------------------------------------------------- DTW
+
+
+@pytest.mark.parametrize("integer_costs", [False, True])
+def test_dtw_matches_reference_cost_and_path(integer_costs):
+    rng = np.random.default_rng(0)
+    costs = [rng.integers(0, 3, size=s).astype(float) if integer_costs else rng.random(s) for s in LENGTHS]
+    for cost, res in zip(costs, dtw_batch(costs)):  # integer costs: many ties, exercises the tie rule
+        raw, path = ref_dtw(cost)
+        assert res.cost_raw == pytest.approx(raw, abs=1e-12)
+        assert [tuple(p) for p in res.path] == path
+
+
+@pytest.mark.parametrize("shape", LENGTHS)
+def test_path_is_monotone_unit_steps_from_start_to_end(shape):
+    res = dtw(np.random.default_rng(1).random(shape))
+    assert tuple(res.path[0]) == (0, 0) and tuple(res.path[-1]) == (shape[0] - 1, shape[1] - 1)
+    steps = {tuple(s) for s in np.diff(res.path, axis=0)}
+    assert steps <= {(1, 0), (0, 1), (1, 1)}
+    assert res.path_length == len(res.path) >= max(shape)
+    assert res.cost_pathnorm == pytest.approx(res.cost_raw / res.path_length)
+
+
+def test_dtw_rejects_bad_costs():
+    with pytest.raises(ValueError, match="non-empty"):
+        dtw(np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="non-finite"):
+        dtw(np.array([[0.0, np.nan]]))
+
+
+# ---------------------------------------------------------------- cost matrices and Procrustes
+
+
+@pytest.mark.parametrize("method", ["quaternion", "svd"])
+@pytest.mark.parametrize("points", [3, 12, 21])
+def test_distance_matrices_match_reference(method, points):
+    rng = np.random.default_rng(points)
+    pred, gt = motion(rng, 7, points), motion(rng, 5, points)
+    jpe = jpe_distance_matrix(T(pred), T(gt)).numpy()
+    pa = pa_distance_matrix(T(pred), T(gt), method, chunk_pairs=8).numpy()  # several chunks
+    np.testing.assert_allclose(jpe, [[ref_jpe(p, g) for g in gt] for p in pred], atol=1e-10, rtol=0)
+    np.testing.assert_allclose(pa, [[ref_pa(p, g) for g in gt] for p in pred], atol=1e-10, rtol=0)
+
+
+def test_quaternion_solver_matches_svd_including_degenerate_points():
+    rng = np.random.default_rng(3)
+    x, y = T(rng.normal(size=(500, 12, 3))), T(rng.normal(size=(500, 12, 3)))
+    line = T(np.linspace(0, 1, 12)[:, None] * np.array([1.0, 2.0, 3.0]))
+    x[0] = line  # collinear source: the eigenvector is not unique -> SVD fallback
+    x[1] = line + 1e-9 * T(rng.normal(size=(12, 3)))
+    fast, slow = similarity_align(x, y, "quaternion"), similarity_align(x, y, "svd")
+    assert float((fast - slow).abs().max()) < 1e-9
+    np.testing.assert_allclose(fast[5].numpy(), ref_align(x[5].numpy(), y[5].numpy()), atol=1e-10)
+    rotation, _ = rotation_from_covariance(x.transpose(1, 2) @ y, x.square().sum((1, 2)), y.square().sum((1, 2)))
+    assert torch.allclose(torch.linalg.det(rotation), torch.ones(500, dtype=torch.float64))
+
+
+def test_procrustes_of_a_similarity_copy_is_zero():
+    rng = np.random.default_rng(4)
+    x = motion(rng, 6, 21)
+    moved = similarity_copy(x, rng)
+    np.testing.assert_allclose(similarity_align(T(moved), T(x)).numpy(), x, atol=1e-9)
+    assert float(pa_distance_matrix(T(moved), T(x)).diagonal().abs().max()) < 1e-9
+
+
+def test_collapsed_frame_gets_scale_zero_not_nan():
+    rng = np.random.default_rng(5)
+    gt = motion(rng, 2, 12)
+    pred = np.repeat(np.full((1, 1, 3), 0.3), 12, axis=1)  # every point at one spot
+    pa = pa_distance_matrix(T(pred), T(gt)).numpy()
+    expected = [np.linalg.norm(g - g.mean(0), axis=-1).mean() for g in gt]
+    np.testing.assert_allclose(pa[0], expected, atol=1e-12)
+
+
+def test_unknown_method_is_rejected():
+    with pytest.raises(ValueError, match="unknown Procrustes method"):
+        pa_distance_matrix(torch.zeros(2, 3, 3, dtype=torch.float64), torch.ones(2, 3, 3, dtype=torch.float64), "eig")
+
+
+# ---------------------------------------------------------------- sequence metrics
+
+
+@pytest.mark.parametrize("t1,t2", [(1, 1), (1, 8), (9, 1), (12, 7), (6, 15)])
+def test_sequence_metrics_match_reference(t1, t2):
+    rng = np.random.default_rng(t1 * 100 + t2)
+    pred, gt = regions(rng, t1), regions(rng, t2)
+    out = sequence_metrics(pred, gt)
+    for region in pred:
+        for stem, dist in ((f"dtw_jpe_{region}", ref_jpe), (f"dtw_pa_jpe_{region}", ref_pa)):
+            raw, path = ref_sequence(pred[region], gt[region], dist)
+            assert out[f"{stem}_m"] == pytest.approx(raw, abs=1e-6, rel=0)
+            assert out[f"{stem}_pathnorm_m"] == pytest.approx(raw / len(path), abs=1e-6, rel=0)
+    for stem in ("dtw_jpe", "dtw_pa_jpe"):
+        for suffix in ("_m", "_pathnorm_m"):
+            left, right = out[f"{stem}_left_hand{suffix}"], out[f"{stem}_right_hand{suffix}"]
+            assert out[f"{stem}_hand{suffix}"] == pytest.approx((left + right) / 2)
+
+
+def test_face_is_named_vpe_and_procrustes_regions_are_configurable():
+    rng = np.random.default_rng(6)
+    pred, gt = {"face": motion(rng, 4, 30)}, {"face": motion(rng, 5, 30)}
+    assert set(sequence_metrics(pred, gt)) == {"dtw_vpe_face_m", "dtw_vpe_face_pathnorm_m"}
+    out = sequence_metrics(pred, gt, MotionMetricsConfig(procrustes_regions=("face",)))
+    assert out["dtw_pa_vpe_face_m"] == pytest.approx(ref_sequence(pred["face"], gt["face"], ref_pa)[0], abs=1e-6)
+
+
+def test_dtw_of_a_sequence_with_itself_is_zero():
+    seq = regions(np.random.default_rng(7), 20)
+    out = sequence_metrics(seq, seq)
+    assert all(abs(v) < 1e-9 for v in out.values()), out
+
+
+def test_jpe_is_symmetric_pa_is_invariant_to_similarity_of_the_prediction():
+    rng = np.random.default_rng(8)
+    a, b = regions(rng, 11), regions(rng, 8)
+    ab, ba = sequence_metrics(a, b), sequence_metrics(b, a)
+    for name in ab:
+        if name.startswith("dtw_jpe"):
+            assert ab[name] == pytest.approx(ba[name], abs=1e-12)
+    # PA aligns pred onto gt, so swapping sides is not symmetric; what holds: any per-frame similarity of the
+    # prediction and any per-frame rigid motion of the ground truth leave it unchanged.
+    moved_pred = {k: similarity_copy(v, rng) for k, v in a.items()}
+    rigid_gt = {}
+    for k, v in b.items():
+        rot = Rotation.random(len(v), random_state=1).as_matrix()
+        rigid_gt[k] = np.einsum("tab,tkb->tka", rot, v) + rng.normal(size=(len(v), 1, 3))
+    out = sequence_metrics(moved_pred, rigid_gt)
+    for name in ab:
+        if name.startswith("dtw_pa"):
+            assert out[name] == pytest.approx(ab[name], abs=1e-9)
+
+
+def test_evaluate_pairs_batches_but_keeps_order_and_values():
+    rng = np.random.default_rng(9)
+    pairs = [(regions(rng, t1), regions(rng, t2)) for t1, t2 in [(9, 3), (2, 2), (14, 11), (1, 5), (6, 6)]]
+    batched = evaluate_pairs(pairs, config=MotionMetricsConfig(batch_pairs=2))
+    for (pred, gt), got in zip(pairs, batched):
+        alone = sequence_metrics(pred, gt)
+        assert got.keys() == alone.keys()
+        assert all(got[k] == pytest.approx(alone[k], abs=1e-12) for k in got)
+    summary = summarise(batched)
+    assert summary["dtw_jpe_body_m"] == pytest.approx(np.mean([m["dtw_jpe_body_m"] for m in batched]))
+
+
+def test_torch_inputs_are_accepted():
+    rng = np.random.default_rng(10)
+    pred, gt = regions(rng, 4), regions(rng, 5)
+    as_torch = sequence_metrics({k: torch.as_tensor(v, dtype=torch.float32) for k, v in pred.items()}, gt)
+    assert as_torch["dtw_jpe_body_m"] == pytest.approx(sequence_metrics(pred, gt)["dtw_jpe_body_m"], abs=1e-6)
+
+
+@pytest.mark.parametrize("bad,message", [
+    ({"body": np.zeros((0, 12, 3))}, "empty sequence"),
+    ({"body": np.zeros((4, 11, 3))}, "different point counts"),
+    ({"body": np.zeros((4, 12))}, r"expected \(T, K, 3\)"),
+    ({"body": np.full((4, 12, 3), np.inf)}, "non-finite"),
+    ({"hand": np.zeros((4, 12, 3))}, "regions differ"),
+    ({}, "regions differ"),
+])
+def test_bad_inputs_raise_naming_region_and_shape(bad, message):
+    good = {"body": np.zeros((4, 12, 3))}
+    with pytest.raises(ValueError, match=message):
+        sequence_metrics(bad, good)
+
+
+def test_summarise_rejects_empty_and_mismatched():
+    with pytest.raises(ValueError, match="no per-pair"):
+        summarise([])
+    with pytest.raises(ValueError, match="pair 1"):
+        summarise([{"a": 1.0}, {"b": 1.0}])
