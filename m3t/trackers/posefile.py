@@ -1,0 +1,150 @@
+"""``.pose`` files (pose-format) with MediaPipe-Holistic components as tracks.
+
+A holistic ``.pose`` file holds, per frame and person, the components ``POSE_LANDMARKS`` (33),
+``LEFT_HAND_LANDMARKS`` / ``RIGHT_HAND_LANDMARKS`` (21 each), ``FACE_LANDMARKS`` (468, or 478 with the
+refined iris points, or a subset in "reduced holistic" files) and often ``POSE_WORLD_LANDMARKS`` (33), each
+point as x, y, z plus a confidence. x and y are pixels of the header's width x height (pose-format
+multiplies MediaPipe's normalised output by the video size); z is MediaPipe's relative depth in the same
+scale. Collections may have normalised the coordinates: the fingerspelling lexicon shipped in
+``spoken-to-signed`` is centred on the shoulders and scaled to a 500 x 500 canvas (shoulders ~200 px
+apart, centre (250, 250), z ~250), which is still a valid image for fitting with an unknown camera.
+
+Components and points are matched by name, so reordered or reduced files map correctly; face points past
+the 468 mesh points (iris) are dropped. Points with zero confidence (pose-format's masked points) become NaN
+with confidence 0.
+
+Axis legend: T frames, K = 543 landmarks of the ``mediapipe_holistic`` layout.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
+
+# MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order), as pose-format writes them.
+POSE_POINTS = (
+    "NOSE", "LEFT_EYE_INNER", "LEFT_EYE", "LEFT_EYE_OUTER", "RIGHT_EYE_INNER", "RIGHT_EYE", "RIGHT_EYE_OUTER",
+    "LEFT_EAR", "RIGHT_EAR", "MOUTH_LEFT", "MOUTH_RIGHT", "LEFT_SHOULDER", "RIGHT_SHOULDER", "LEFT_ELBOW",
+    "RIGHT_ELBOW", "LEFT_WRIST", "RIGHT_WRIST", "LEFT_PINKY", "RIGHT_PINKY", "LEFT_INDEX", "RIGHT_INDEX",
+    "LEFT_THUMB", "RIGHT_THUMB", "LEFT_HIP", "RIGHT_HIP", "LEFT_KNEE", "RIGHT_KNEE", "LEFT_ANKLE", "RIGHT_ANKLE",
+    "LEFT_HEEL", "RIGHT_HEEL", "LEFT_FOOT_INDEX", "RIGHT_FOOT_INDEX",
+)
+HAND_POINTS = ("WRIST",) + tuple(
+    f"{finger}_{joint}" for finger, joints in (("THUMB", ("CMC", "MCP", "IP", "TIP")),
+                                               ("INDEX_FINGER", ("MCP", "PIP", "DIP", "TIP")),
+                                               ("MIDDLE_FINGER", ("MCP", "PIP", "DIP", "TIP")),
+                                               ("RING_FINGER", ("MCP", "PIP", "DIP", "TIP")),
+                                               ("PINKY", ("MCP", "PIP", "DIP", "TIP"))) for joint in joints)
+FACE_POINTS = tuple(str(i) for i in range(MEDIAPIPE_HOLISTIC_PARTS["face"]))
+COMPONENTS = {  # track part -> (.pose component, point names in the track's order)
+    "pose": ("POSE_LANDMARKS", POSE_POINTS),
+    "left_hand": ("LEFT_HAND_LANDMARKS", HAND_POINTS),
+    "right_hand": ("RIGHT_HAND_LANDMARKS", HAND_POINTS),
+    "face": ("FACE_LANDMARKS", FACE_POINTS),
+}
+WORLD_COMPONENT = "POSE_WORLD_LANDMARKS"
+TRACKER_NAME = "posefile"
+
+
+class PoseFileError(ValueError):
+    """A ``.pose`` file that cannot be turned into a track; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class PoseFileTrack:
+    track: Track
+    points3d: np.ndarray  # (T, K, 3) float32: the file's x, y, z in its own units; NaN where missing or no z
+    pose_world: np.ndarray | None  # (T, 33, 3) float32 POSE_WORLD_LANDMARKS as stored (see module doc); NaN missing
+
+
+def _match(offsets: dict, component: str, names: tuple[str, ...], first_target: int) -> tuple[list, list]:
+    """(file point index, target index) for the points of ``component`` named in ``names``."""
+    if component not in offsets:
+        return [], []  # e.g. a file without a face: those landmarks stay missing
+    first, points = offsets[component]
+    position = {name: i for i, name in enumerate(names)}
+    pairs = [(first + i, first_target + position[p]) for i, p in enumerate(points) if p in position]
+    return [a for a, _ in pairs], [b for _, b in pairs]
+
+
+def _offsets(header, source: str) -> dict[str, tuple[int, list[str]]]:
+    """Component name -> (index of its first point on the file's point axis, its point names)."""
+    offsets, start = {}, 0
+    for component in header.components:
+        offsets[component.name] = (start, list(component.points))
+        start += len(component.points)
+    if COMPONENTS["pose"][0] not in offsets:
+        raise PoseFileError(f".pose file {source} is not MediaPipe Holistic: components "
+                            f"{[c.name for c in header.components]}, expected {[c for c, _ in COMPONENTS.values()]}")
+    return offsets
+
+
+def pose_to_track(pose, person: int = 0, source: str = "<pose>") -> PoseFileTrack:
+    """A ``pose_format.Pose`` with holistic components -> track in the ``mediapipe_holistic`` layout.
+
+    Parameters
+    ----------
+    pose : pose_format.Pose; body data (T, P, N, D) with D = 2 or 3, confidence (T, P, N)
+    person : which person of the P axis to take
+    source : the file name, for error messages
+    """
+    header, body = pose.header, pose.body
+    data = np.asarray(np.ma.getdata(body.data), dtype=np.float32)  # (T, P, N, D)
+    conf = np.asarray(body.confidence, dtype=np.float32)  # (T, P, N)
+    if data.ndim != 4 or data.shape[0] == 0:
+        raise PoseFileError(f".pose file {source} has no frames (data shape {data.shape})")
+    if not 0 <= person < data.shape[1]:
+        raise PoseFileError(f".pose file {source} has {data.shape[1]} person(s); person={person} does not exist")
+    offsets = _offsets(header, source)
+    parts = landmark_slices("mediapipe_holistic")
+    src, dst = [], []
+    for part, (component, names) in COMPONENTS.items():
+        a, b = _match(offsets, component, names, parts[part].start)
+        src, dst = src + a, dst + b
+    if not src:
+        raise PoseFileError(f".pose file {source}: no point of its holistic components has a MediaPipe landmark "
+                            f"name (e.g. {POSE_POINTS[0]!r}); it was not written by pose-format's holistic reader")
+    data, conf = data[:, person], conf[:, person]  # (T, N, D), (T, N)
+    missing = ~(conf > 0) | ~np.isfinite(data).all(-1) | np.ma.getmaskarray(body.data)[:, person].any(-1)
+
+    T, K = data.shape[0], sum(MEDIAPIPE_HOLISTIC_PARTS.values())
+    points3d = np.full((T, K, 3), np.nan, dtype=np.float32)
+    points3d[:, dst, : min(3, data.shape[-1])] = data[:, src, :3]
+    confidence = np.zeros((T, K), dtype=np.float32)
+    confidence[:, dst] = np.clip(conf[:, src], 0.0, 1.0)
+    gone = np.ones((T, K), dtype=bool)
+    gone[:, dst] = missing[:, src]
+    points3d[gone] = np.nan
+    confidence[gone] = 0.0
+
+    width, height = int(header.dimensions.width), int(header.dimensions.height)
+    if width <= 0 or height <= 0:  # no video size recorded: the smallest image holding every point
+        seen = points3d[..., :2][~gone]
+        width, height = (int(np.ceil(v)) + 1 for v in (seen.max(0) if len(seen) else (1, 1)))
+    track = Track(points3d[..., :2].copy(), confidence, "mediapipe_holistic", (width, height), float(body.fps),
+                  np.full(4, np.nan, dtype=np.float32), TRACKER_NAME)
+
+    pose_world = None
+    world_src, world_dst = _match(offsets, WORLD_COMPONENT, POSE_POINTS, 0)
+    if world_src and data.shape[-1] >= 3:
+        pose_world = np.full((T, len(POSE_POINTS), 3), np.nan, dtype=np.float32)
+        pose_world[:, world_dst] = np.where(missing[:, world_src, None], np.nan, data[:, world_src, :3])
+    return PoseFileTrack(track, points3d, pose_world)
+
+
+def load_pose_track(path: str | Path, person: int = 0) -> PoseFileTrack:
+    """Read a holistic ``.pose`` file -> :class:`PoseFileTrack` (fps and image size from its header)."""
+    from pose_format import Pose
+
+    path = Path(path)
+    if not path.is_file():
+        raise PoseFileError(f".pose file {path} does not exist; check the corpus' pose root")
+    try:
+        pose = Pose.read(path.read_bytes())
+    except Exception as exc:  # noqa: BLE001 - pose-format raises assorted errors on truncated or foreign files
+        raise PoseFileError(f".pose file {path} is unreadable by pose-format ({type(exc).__name__}: {exc}); "
+                            "re-export it or quarantine the clip") from exc
+    return pose_to_track(pose, person=person, source=str(path))
