@@ -63,3 +63,11 @@ def test_non_string_is_a_type_error():
 def test_unknown_tokenizer_raises():
     with pytest.raises(ValueError, match="unknown tokenizer"):
         translation_metrics(["a"], ["a"], "en", method="spm")
+
+
+def test_language_prefix_selects_the_chinese_segmentation():
+    from m3t.metrics.text import translation_metrics
+
+    hyps, refs = ["我的朋友买车"], ["我的朋友买车了"]
+    assert translation_metrics(hyps, refs, "CSL-SYN") == translation_metrics(hyps, refs, "CSL")
+    assert translation_metrics(hyps, refs, "CSL-SYN") != translation_metrics(hyps, refs, "ASL")

@@ -94,9 +94,11 @@ def rouge_l(hyps: Sequence[str], refs: Sequence[str], method: str = "13a", beta:
 
 def translation_metrics(hyps: Sequence[str], refs: Sequence[str], language: str,
                         method: str | None = None) -> dict[str, float]:
-    """``{"bleu4", "rouge_l"}`` on a 0-100 scale; Chinese (``language`` in ``CHINESE``) is segmented by jieba,
-    anything else uses sacrebleu's 13a tokeniser, unless ``method`` names a tokeniser explicitly."""
-    method = method or ("zh" if language.lower() in CHINESE else "13a")
+    """``{"bleu4", "rouge_l"}`` on a 0-100 scale; Chinese (``language`` or its prefix before ``-`` in
+    ``CHINESE``, e.g. ``CSL`` or ``CSL-SYN``) is segmented by jieba, anything else uses sacrebleu's 13a
+    tokeniser, unless ``method`` names a tokeniser explicitly."""
+    code = language.lower()
+    method = method or ("zh" if code in CHINESE or code.split("-")[0] in CHINESE else "13a")
     if method not in TOKENIZERS:
         raise ValueError(f"unknown tokenizer {method!r}; use one of {TOKENIZERS}")
     return {"bleu4": bleu4(hyps, refs, method), "rouge_l": rouge_l(hyps, refs, method)}

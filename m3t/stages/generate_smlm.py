@@ -84,7 +84,7 @@ def run_generate(cfg: GenerateConfig, body: BodyModel, progress: bool = True) ->
             export_pose(out / "pose" / f"{example.clip_id}.pose", body, params, ref.identity, ref.clip.fps)
         if rendered < cfg.render_clips:
             render_reconstruction(body, ref, params, out / "renders" / f"{example.clip_id}.gif",
-                                  title=f"{example.clip_id}: {example.text[:40]}", labels=("fitted", "generated"))
+                                  title=f"{example.clip_id} ({example.language})", labels=("fitted", "generated"))
             rendered += 1
     return {"clips": float(len(clips)), "skipped": float(len(skipped)),
             "stopped_rate": float(sum(generated[e.clip_id].stopped for e in evaluator.examples) / max(len(clips), 1))}
