@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from m3t.metrics.procrustes import check_sequence_pair
+
 CHUNK_ELEMENTS = 1 << 21  # (K x T1 x T2) distances held at once by jpe_distance_matrix
 
 
@@ -155,10 +157,7 @@ def jpe_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, chunk_elements: in
     -------
     (T1, T2) tensor in pred's dtype and units.
     """
-    if pred.ndim != 3 or gt.ndim != 3 or pred.shape[1:] != gt.shape[1:] or pred.shape[-1] != 3:
-        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must be (T1, K, 3) and (T2, K, 3)")
-    t1, k, _ = pred.shape
-    t2 = gt.shape[0]
+    t1, k, t2 = check_sequence_pair(pred, gt)
     x = (pred - pred[:, :1]).transpose(0, 1)  # (K, T1, 3)
     y = (gt - gt[:, :1]).transpose(0, 1)  # (K, T2, 3)
     total = torch.zeros(t1, t2, dtype=pred.dtype, device=pred.device)

@@ -213,6 +213,13 @@ def similarity_align(source: torch.Tensor, target: torch.Tensor, method: str = "
     return similarity_transform(source, target, method).apply(source)
 
 
+def check_sequence_pair(pred: torch.Tensor, gt: torch.Tensor) -> tuple[int, int, int]:
+    """(T1, K, T2) of a (T1, K, 3) prediction and a (T2, K, 3) reference; ValueError on other shapes."""
+    if pred.ndim != 3 or gt.ndim != 3 or pred.shape[1:] != gt.shape[1:] or pred.shape[-1] != 3:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must be (T1, K, 3) and (T2, K, 3)")
+    return pred.shape[0], pred.shape[1], gt.shape[0]
+
+
 def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quaternion",
                        chunk_pairs: int = CHUNK_PAIRS) -> torch.Tensor:
     """SOKE's ``dist_pa`` for every frame pair: mean point distance after aligning pred[i] onto gt[j].
@@ -227,10 +234,7 @@ def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quat
     -------
     (T1, T2) tensor in pred's dtype and units.
     """
-    if pred.ndim != 3 or gt.ndim != 3 or pred.shape[1:] != gt.shape[1:] or pred.shape[-1] != 3:
-        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must be (T1, K, 3) and (T2, K, 3)")
-    t1, k, _ = pred.shape
-    t2 = gt.shape[0]
+    t1, k, t2 = check_sequence_pair(pred, gt)
     xs = (pred - pred.mean(1, keepdim=True)).transpose(1, 2)  # (T1, 3, K)
     yt = (gt - gt.mean(1, keepdim=True)).transpose(1, 2).contiguous()  # (T2, 3, K)
     var_s, var_t = xs.square().sum((1, 2)), yt.square().sum((1, 2))  # (T1,), (T2,)
