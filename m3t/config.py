@@ -8,6 +8,7 @@ what is allowed. Components receive only their own section (``params.fitting``),
 from __future__ import annotations
 
 import dataclasses
+import json
 import types
 import typing
 from dataclasses import dataclass, fields
@@ -22,7 +23,7 @@ from m3t.experiment import ExperimentConfig
 from m3t.fitting.fit import FittingConfig
 from m3t.smlm.model import SMLMConfig
 from m3t.smlm.train import SMLMTrainConfig
-from m3t.stages.fit_corpus import FitCorpusConfig
+from m3t.stages.fit_corpus import CorpusSource, FitCorpusConfig
 from m3t.stages.generate_smlm import GenerateConfig
 from m3t.stages.tokenize import TokenizeConfig
 from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig
@@ -50,6 +51,7 @@ class Params:
     smlm: SMLMConfig
     smlm_train: SMLMTrainConfig
     smlm_generate: GenerateConfig
+    corpora: dict[str, CorpusSource]  # corpus name -> where it lives and its adapter's options
 
 
 SECTIONS: dict[str, type] = {f.name: f.type for f in fields(Params)}
@@ -65,6 +67,15 @@ def _type_name(tp: Any) -> str:
 def _coerce(value: Any, tp: Any, where: str) -> Any:
     """Check ``value`` against the annotation ``tp``; return it converted (lists -> tuples, int -> float)."""
     origin = get_origin(tp)
+    if tp is Any:  # only adapter options: checked against the adapter's own dataclass (_check_corpora)
+        return value
+    if dataclasses.is_dataclass(tp):
+        return build_section(tp, value, where)
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__} {value!r}")
+        key_tp, value_tp = get_args(tp)
+        return {_coerce(k, key_tp, f"{where} key {k!r}"): _coerce(v, value_tp, f"{where}.{k}") for k, v in value.items()}
     if origin is Literal:
         if value not in get_args(tp):
             raise ConfigError(f"{where}: {value!r} is not allowed; expected {_type_name(tp)}")
@@ -115,7 +126,48 @@ def build_section(cls: type, values: dict | None, section: str) -> Any:
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(f'{section}.{k}' for k in unknown)}; allowed keys in '{section}': {', '.join(allowed)}")
     kwargs = {k: _coerce(v, hints[k], f"{section}.{k}") for k, v in values.items()}
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except ValueError as exc:  # a section's own consistency check (__post_init__)
+        raise ConfigError(f"{section}: {exc}") from exc
+
+
+MOVED_KEYS = {"corpus_dir": "root", "shards_dir": "shards_dir", "options": "options"}
+
+
+def _check_corpora(raw: dict) -> dict:
+    """``corpora``: known corpus names only, each adapter's options typed by its own option dataclass."""
+    from m3t.corpora.base import CORPORA, adapter_class
+
+    corpora = raw.get("corpora") or {}
+    if not isinstance(corpora, dict):
+        raise ConfigError(f"corpora: expected a mapping of corpus names, got {type(corpora).__name__}")
+    out = {}
+    for name, entry in corpora.items():
+        if name not in CORPORA:
+            raise ConfigError(f"unknown corpus corpora.{name}; allowed corpora: {', '.join(CORPORA)}")
+        if not isinstance(entry, (dict, type(None))):
+            raise ConfigError(f"corpora.{name}: expected a mapping with root, shards_dir, options; got {entry!r}")
+        entry = dict(entry or {})
+        options = entry.get("options") or {}
+        if not isinstance(options, dict):
+            raise ConfigError(f"corpora.{name}.options: expected a mapping, got {type(options).__name__}")
+        built = build_section(adapter_class(name).config_type, options, f"corpora.{name}.options")
+        out[name] = {**entry, "options": {k: getattr(built, k) for k in options}}
+    # fit_corpus.corpus_dir / shards_dir / options are filled from corpora.<corpus>; written here (a dumped
+    # Params) they must agree with it, or one of the two would be silently ignored
+    fit = raw.get("fit_corpus") or {}
+    name = fit.get("corpus", "synthetic")
+    if name in out:
+        entry = {"root": "", "options": {}, **out[name]}
+        entry["shards_dir"] = entry.get("shards_dir") or f"data/shards/{name}"
+        for key, source in MOVED_KEYS.items():
+            if key in fit and json.dumps(fit[key], sort_keys=True) != json.dumps(entry[source], sort_keys=True):
+                raise ConfigError(f"fit_corpus.{key} = {fit[key]!r} disagrees with corpora.{name}.{source} = "
+                                  f"{entry[source]!r}; set it in corpora only")
+    return out
 
 
 def merge(base: dict, overlay: dict) -> dict:
@@ -146,7 +198,8 @@ def params_from_dict(raw: dict) -> Params:
     unknown = sorted(set(raw) - set(SECTIONS))
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}; allowed sections: {', '.join(SECTIONS)}")
-    return Params(**{name: build_section(_HINTS[name], raw.get(name), name) for name in SECTIONS})
+    raw = {**raw, "corpora": _check_corpora(raw)}
+    return Params(**{name: _coerce(raw.get(name) or {}, _HINTS[name], name) for name in SECTIONS})
 
 
 def load_params(path: str | Path = "params.yaml", preset: str = "default", overrides: dict | None = None) -> Params:
@@ -161,6 +214,8 @@ def to_dict(obj: Any) -> Any:
         return {f.name: to_dict(getattr(obj, f.name)) for f in fields(obj)}
     if isinstance(obj, tuple):
         return [to_dict(x) for x in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
     return obj
 
 

@@ -7,10 +7,11 @@ workers and tests all land in the same store. Telemetry is switched off before m
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 TELEMETRY_OFF = {
     "DO_NOT_TRACK": "true",
@@ -72,6 +73,17 @@ class Run:
         if self._mlflow and Path(path).exists():
             self._mlflow.log_artifact(str(path), artifact_path=artifact_path)
 
+    def log_table(self, csv_path: str | Path, artifact_file: str) -> None:
+        """A CSV (header row + rows) as an MLflow table (viewable and comparable in the UI) and as the file."""
+        if self._mlflow and Path(csv_path).exists():
+            import csv
+
+            with open(csv_path, newline="") as fh:
+                rows = list(csv.DictReader(fh))
+            columns = {k: [r[k] for r in rows] for k in (rows[0] if rows else {})}
+            self._mlflow.log_table(data=columns, artifact_file=artifact_file)
+            self._mlflow.log_artifact(str(csv_path))
+
     def set_tags(self, tags: dict[str, str]) -> None:
         if self._mlflow:
             self._mlflow.set_tags(tags)
@@ -110,8 +122,9 @@ class RunRecord:
 def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None = None) -> list[RunRecord]:
     """Runs of the experiment, newest first (optionally one stage only), for dashboards and tables."""
     disable_telemetry()
-    from mlflow.tracking import MlflowClient
     from urllib.parse import unquote, urlparse
+
+    from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=tracking_uri(cfg, Path(root)))
     experiment = client.get_experiment_by_name(cfg.experiment)

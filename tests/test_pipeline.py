@@ -15,21 +15,17 @@ import yaml
 from m3t.config import load_params, to_dict
 from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
 from m3t.shards.io import read_shard
-from m3t.stages.fit_corpus import FitContext, run_fit_corpus
+from m3t.stages.fit_corpus import FitContext, for_corpus, run_fit_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_CORPUS: dict = {}  # the tiny preset already shrinks the corpus
 
 
 def tiny_params(tmp_path: Path, **fit_corpus):
-    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={"corpus": TINY_CORPUS})
-    cfg = dataclasses.replace(
-        params.fit_corpus,
-        corpus_dir=str(tmp_path / "corpus"),
-        shards_dir=str(tmp_path / "shards"),
-        cache_dir=str(tmp_path / "cache"),
-        **fit_corpus,
-    )
+    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
+        "corpus": TINY_CORPUS,
+        "corpora": {"synthetic": {"root": str(tmp_path / "corpus"), "shards_dir": str(tmp_path / "shards")}}})
+    cfg = dataclasses.replace(for_corpus(params, "synthetic"), cache_dir=str(tmp_path / "cache"), **fit_corpus)
     return dataclasses.replace(params, fit_corpus=cfg)
 
 

@@ -22,13 +22,21 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from m3t.corpora.base import (
-    Collector, CorpusAdapter, CorpusError, Listing, check_fractions, hash_split, hash_unit, read_lines, with_kind,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    check_fractions,
+    hash_split,
+    hash_unit,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 from m3t.corpora.posefile import PoseData, components_text, read_pose, read_pose_info
@@ -139,7 +147,7 @@ class FingerspellingCorpus(CorpusAdapter):
     def spell(self, word: str, language: str) -> PoseData:
         """The word's letter clips concatenated in time (T, K, 3); letters resampled to the highest fps."""
         paths = self.letters(language)
-        return concatenate([read_pose(self.root / paths[x]) for x in self.tokenize(word, language)])
+        return spell_files([self.root / paths[x] for x in self.tokenize(word, language)])
 
     def listing(self) -> Listing:
         cfg = self.config
@@ -232,8 +240,7 @@ def resample(data: PoseData, fps: float) -> PoseData:
     points = np.where(both[..., None], (1 - w[..., None]) * data.points[lo] + w[..., None] * data.points[hi],
                       data.points[near])  # (n, K, 3)
     conf = np.where(both, (1 - w) * data.confidence[lo] + w * data.confidence[hi], data.confidence[near])  # (n, K)
-    return PoseData(points.astype(np.float32), conf.astype(np.float32), float(fps), data.components, data.width,
-                    data.height)
+    return replace(data, points=points.astype(np.float32), confidence=conf.astype(np.float32), fps=float(fps))
 
 
 def concatenate(parts: list[PoseData]) -> PoseData:
@@ -247,8 +254,21 @@ def concatenate(parts: list[PoseData]) -> PoseData:
                               f"{components_text(p.components)}); they cannot be concatenated")
     fps = max(p.fps for p in parts)
     same = [resample(p, fps) for p in parts]
-    return PoseData(np.concatenate([p.points for p in same]), np.concatenate([p.confidence for p in same]), fps,
-                    layout, parts[0].width, parts[0].height)
+    return replace(parts[0], points=np.concatenate([p.points for p in same]),
+                   confidence=np.concatenate([p.confidence for p in same]), fps=fps, dims=min(p.dims for p in parts))
+
+
+def spell_files(paths: list[Path]) -> PoseData:
+    """The ``.pose`` files of a word's letters, read and concatenated (what a ``spelled`` clip's media is)."""
+    return concatenate([read_pose(p) for p in paths])
+
+
+def spelled_paths(clip: Clip, root: Path) -> list[Path]:
+    """The letter files of a ``spelled`` clip (its extra ``letter_paths``, relative to ``root``)."""
+    letters = clip.get("letter_paths") or ""
+    if not letters:
+        raise CorpusError(f"spelled clip {clip.id} lists no letter_paths; re-list the fingerspelling corpus")
+    return [root / p for p in letters.split("|")]
 
 
 def spell(word: str, language: str) -> PoseData:

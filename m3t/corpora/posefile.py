@@ -16,7 +16,15 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from m3t.corpora.base import (
-    SPLITS, Collector, CorpusAdapter, CorpusError, Listing, check_fractions, hash_split, read_lines, with_kind,
+    SPLITS,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    check_fractions,
+    hash_split,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 
@@ -39,7 +47,12 @@ class PoseInfo:
 
 @dataclass(frozen=True)
 class PoseData:
-    """Person 0 of a ``.pose`` file. points (T, K, 3) float32 (z = 0 for 2D files), confidence (T, K) float32."""
+    """One person of a ``.pose`` file; the form every ``.pose`` consumer (listing, spelling, tracks) reads.
+
+    points (T, K, 3) float32 in the file's units (z = 0 for 2D files, see ``dims``); confidence (T, K) float32,
+    0 where pose-format masked the point; ``components`` = ((name, n_points), ...) in point order and
+    ``point_names`` the names of each component's points (what tracks match landmarks by).
+    """
 
     points: np.ndarray
     confidence: np.ndarray
@@ -47,6 +60,8 @@ class PoseData:
     components: tuple[tuple[str, int], ...]
     width: int
     height: int
+    point_names: tuple[tuple[str, ...], ...] = ()
+    dims: int = 3  # coordinates the file stores (2 or 3)
 
 
 def _header(path: Path, chunk: int = 1 << 16):
@@ -98,30 +113,49 @@ def read_pose_info(path: str | Path) -> PoseInfo:
                     header.dimensions.height, header.version)
 
 
-def read_pose(path: str | Path) -> PoseData:
-    """Decode a ``.pose`` file; person 0 only. Masked points get confidence 0."""
+def pose_data(pose, source: str = "<pose>", person: int = 0) -> PoseData:
+    """A decoded ``pose_format.Pose`` -> :class:`PoseData` of one person. Masked points get confidence 0.
+
+    Parameters
+    ----------
+    pose : pose_format.Pose; body data (T, P, K, D) with D = 2 or 3, confidence (T, P, K)
+    source : the file name, for error messages
+    person : which person of the P axis to take
+    """
+    data, conf = pose.body.data, pose.body.confidence  # (T, P, K, D), (T, P, K)
+    if data.ndim != 4 or data.shape[0] == 0 or data.shape[1] == 0:
+        raise CorpusError(f"{source}: no frames or no person in the pose body (shape {data.shape})")
+    if not 0 <= person < data.shape[1]:
+        raise CorpusError(f"{source} has {data.shape[1]} person(s); person={person} does not exist")
+    points = np.ma.getdata(data)[:, person].astype(np.float32)  # (T, K, D)
+    confidence = np.asarray(conf, dtype=np.float32)[:, person]  # (T, K)
+    mask = np.ma.getmaskarray(data)[:, person].any(-1)
+    confidence = np.where(mask, 0.0, confidence).astype(np.float32)
+    dims = int(points.shape[-1])
+    if dims < 3:  # 2D files: z = 0 so every reader sees (T, K, 3)
+        points = np.concatenate([points, np.zeros((*points.shape[:2], 3 - dims), np.float32)], -1)
+    header = pose.header
+    return PoseData(points[..., :3], confidence, float(pose.body.fps),
+                    tuple((c.name, len(c.points)) for c in header.components),
+                    int(header.dimensions.width), int(header.dimensions.height),
+                    tuple(tuple(str(p) for p in c.points) for c in header.components), min(dims, 3))
+
+
+def read_pose(path: str | Path, person: int = 0) -> PoseData:
+    """Decode a ``.pose`` file (one person); ``CorpusError`` naming the file when missing or unreadable."""
     from pose_format import Pose
 
     path = Path(path)
+    if not path.is_file():
+        raise CorpusError(f"{path} does not exist; check the corpus root")
     try:
         pose = Pose.read(path.read_bytes())
     except OSError as exc:
         raise CorpusError(f"{path}: cannot read ({exc})") from exc
-    except READ_ERRORS as exc:
-        raise CorpusError(f"{path}: unreadable or truncated .pose file ({type(exc).__name__}: {exc})") from exc
-    data, conf = pose.body.data, pose.body.confidence  # (T, P, K, D), (T, P, K)
-    if data.ndim != 4 or data.shape[1] == 0:
-        raise CorpusError(f"{path}: no person in the pose body (shape {data.shape})")
-    points = np.ma.getdata(data)[:, 0].astype(np.float32)  # (T, K, D)
-    confidence = np.asarray(conf, dtype=np.float32)[:, 0]  # (T, K)
-    mask = np.ma.getmaskarray(data)[:, 0].any(-1)
-    confidence = np.where(mask, 0.0, confidence).astype(np.float32)
-    if points.shape[-1] < 3:  # 2D files: z = 0 so every reader sees (T, K, 3)
-        points = np.concatenate([points, np.zeros((*points.shape[:2], 3 - points.shape[-1]), np.float32)], -1)
-    header = pose.header
-    return PoseData(points[..., :3], confidence, float(pose.body.fps),
-                    tuple((c.name, len(c.points)) for c in header.components),
-                    int(header.dimensions.width), int(header.dimensions.height))
+    except (*READ_ERRORS, AssertionError, KeyError) as exc:
+        raise CorpusError(f"{path}: unreadable or truncated .pose file ({type(exc).__name__}: {exc}); "
+                          "re-export it") from exc
+    return pose_data(pose, str(path), person)
 
 
 def components_text(components: tuple[tuple[str, int], ...]) -> str:

@@ -1,53 +1,102 @@
-"""fit-corpus: clips -> tracks -> fitted body-model parameters -> Parquet shards (one per split).
+"""fit-corpus: a corpus' clips -> tracks -> fitted body-model parameters -> Parquet shards (one per split).
+
+Any corpus of :data:`m3t.corpora.base.CORPORA` (``--corpus NAME``; root, shards folder and adapter options
+from ``corpora.NAME`` in params.yaml). Tracks come from the clip's media kind (:mod:`m3t.trackers.dispatch`:
+simulated for the synthetic corpus, ``.pose`` files and spelled words converted, videos and frame folders
+through MediaPipe); rows the adapter could not list are quarantined beside the clips that failed later.
 
 Each clip is processed independently by :func:`process_clip` (the unit the Prefect flow parallelises):
 its track and its fit are content-addressed by a hash of their inputs and configs, stored under the
 cache dir (``tracks/`` and ``parts/``), written atomically, and reused when present, so a killed run
 resumes without redoing a finished clip, and an unchanged clip is never re-fitted. A clip that fails
 (missing / corrupt media, unusable track) is quarantined with its reason; the others go on.
-:func:`consolidate` then writes ``<split>.parquet``, ``quarantine.jsonl`` and ``summary.json``.
+:func:`consolidate` then writes ``<split>.parquet``, ``quarantine.jsonl``, ``summary.json`` and the data-quality
+report (``quality.csv`` / ``quality.json``, :mod:`m3t.fitting.quality`).
 
-Run as a DVC stage: ``python -m m3t.stages.fit_corpus`` (reads params.yaml, logs to MLflow).
+Run as a DVC stage: ``python -m m3t.stages.fit_corpus --corpus NAME`` (reads params.yaml, logs to MLflow).
+Ground-truth metrics exist for the synthetic corpus only.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
-import math
-import os
-import tempfile
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Literal
+from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from m3t.body.factory import BodyConfig, body_cache_key, load_body_model
 from m3t.body.protocol import BodyModel
+from m3t.corpora.base import CORPORA, CorpusAdapter, Listing, open_corpus
 from m3t.corpora.clip import Clip
-from m3t.fitting.evaluate import as_tensors, ground_truth_errors, joints_for, procrustes_error_mm
+from m3t.fitting.evaluate import (
+    as_tensors,
+    ground_truth_errors,
+    joints_for,
+    procrustes_error_mm,
+)
 from m3t.fitting.fit import FittingConfig, fit_track
+from m3t.fitting.quality import part_reprojection_px, track_coverage
 from m3t.shards.io import read_shard, write_shard
 from m3t.shards.schema import FittedClip
+from m3t.stages.fit_corpus_report import (  # noqa: F401 - re-exported: the flow and tests use them from here
+    STANDARD_SPLITS,
+    FitCorpusReport,
+    consolidate,
+    log_report,
+    summarise,
+)
+from m3t.trackers.dispatch import ClipRefused, media_key, media_kind, track_real_clip
+from m3t.trackers.mediapipe_holistic import MediaPipeConfig
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 from m3t.trackers.track import load_track, save_track
 
-STANDARD_SPLITS = ("train", "dev", "test")
-KEY_VERSION = "fit-v1"  # bump when fitting code changes in a way that invalidates cached results
+KEY_VERSION = "fit-v2"  # bump when fitting code changes in a way that invalidates cached results
+
+
+@dataclass(frozen=True)
+class CorpusSource:
+    """Where one corpus lives (params.yaml ``corpora.<name>``). ``root`` "" = the adapter's default (the
+    fingerspelling lexicon inside its installed package); ``options`` = the adapter's option dataclass fields."""
+
+    root: str = ""
+    shards_dir: str = ""
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class FitCorpusConfig:
-    corpus: Literal["synthetic"] = "synthetic"
+    """params.yaml ``fit_corpus``. ``corpus_dir``, ``shards_dir`` and ``options`` are filled from
+    ``corpora.<corpus>`` by :func:`for_corpus` (params.yaml sets them there, not here)."""
+
+    corpus: Literal[CORPORA] = "synthetic"  # the default of --corpus
     corpus_dir: str = "data/corpus/synthetic"
     shards_dir: str = "data/shards/synthetic"
     cache_dir: str = ".cache/fit"
     workers: int = 2
     max_clips: int = 0  # 0 = every clip
     render_clips: int = 2
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+def for_corpus(params, corpus: str | None = None) -> FitCorpusConfig:
+    """``params.fit_corpus`` for ``corpus`` (default ``fit_corpus.corpus``) with its ``corpora`` entry applied."""
+    from m3t.config import ConfigError
+
+    name = corpus or params.fit_corpus.corpus
+    if name not in CORPORA:
+        raise ConfigError(f"corpus {name!r} unknown; expected one of {', '.join(CORPORA)}")
+    if name not in params.corpora:
+        raise ConfigError(f"corpora.{name} is not in params.yaml; add it with root, shards_dir and options "
+                          f"(see the commented examples there)")
+    src = params.corpora[name]
+    return dataclasses.replace(params.fit_corpus, corpus=name, corpus_dir=src.root,
+                               shards_dir=src.shards_dir or f"data/shards/{name}", options=dict(src.options))
 
 
 @dataclass(frozen=True)
@@ -60,19 +109,30 @@ class ClipOutcome:
     metrics: dict[str, float] = field(default_factory=dict)
     frames: int = 0
     seconds: float = 0.0
+    group: str | None = None  # the short reason the quality report counts
+    file: str | None = None  # quarantined: the listing file (or the clip's media) ...
+    row: int | None = None  # ... and its row, when the adapter refused the row
+    from_listing: bool = False
+    coverage: dict[str, float] = field(default_factory=dict)  # missing_<part> ratios of the track
+    track_frames: int = 0
 
 
-def open_corpus(cfg: FitCorpusConfig):
-    if cfg.corpus == "synthetic":
-        from m3t.corpora.synthetic import SyntheticCorpus
-
-        return SyntheticCorpus(cfg.corpus_dir)
-    raise ValueError(f"fit_corpus.corpus {cfg.corpus!r} unknown; allowed: synthetic")
+def list_corpus(cfg: FitCorpusConfig) -> Listing:
+    """The adapter's listing (clips cut to ``max_clips``, its quarantined rows all kept)."""
+    listing = open_corpus(cfg.corpus, cfg.corpus_dir, **cfg.options).listing()
+    clips = listing.clips[: cfg.max_clips] if cfg.max_clips > 0 else listing.clips
+    return Listing(tuple(clips), listing.quarantined)
 
 
 def list_clips(cfg: FitCorpusConfig) -> list[Clip]:
-    clips = open_corpus(cfg).clips()
-    return clips[: cfg.max_clips] if cfg.max_clips > 0 else clips
+    return list(list_corpus(cfg).clips)
+
+
+def listing_outcomes(listing: Listing) -> list[ClipOutcome]:
+    """The rows the adapter refused, as quarantined outcomes (file + row + reason)."""
+    return [ClipOutcome(q.clip_id or "", "", "quarantined", reason=q.reason, file=q.file, row=q.row,
+                        group="listing: " + q.reason.split(":")[0].split(";")[0][:60], from_listing=True)
+            for q in listing.quarantined]
 
 
 def _digest(*parts: object) -> str:
@@ -96,8 +156,10 @@ class FitContext:
     tracker_cfg: SimulatedTrackerConfig
     fitting_cfg: FittingConfig
     _body: BodyModel | None = None
-    _corpus: object | None = None
+    _corpus: CorpusAdapter | None = None
+    _synthetic: object | None = None
     _body_key: object | None = None
+    mediapipe_cfg: MediaPipeConfig = field(default_factory=MediaPipeConfig)
 
     @property
     def body(self) -> BodyModel:
@@ -112,22 +174,39 @@ class FitContext:
         return self._body_key
 
     @property
-    def corpus(self):
+    def corpus(self) -> CorpusAdapter:
         if self._corpus is None:
-            self._corpus = open_corpus(self.cfg)
+            self._corpus = open_corpus(self.cfg.corpus, self.cfg.corpus_dir, **self.cfg.options)
         return self._corpus
+
+    def ground_truth(self, clip: Clip):
+        """(params, identity, camera) of a synthetic clip."""
+        if self._synthetic is None:
+            from m3t.corpora.synthetic import SyntheticCorpus
+
+            self._synthetic = SyntheticCorpus(self.cfg.corpus_dir)
+        return self._synthetic.ground_truth(clip)
 
 
 def track_clip(clip: Clip, ctx: FitContext) -> Path:
-    """Simulated tracking of a synthetic clip, cached by (motion file, tracker config, body model)."""
-    media = Path(ctx.cfg.corpus_dir) / clip.media
-    if not media.exists():
-        raise FileNotFoundError(f"media file {media} of clip {clip.id} is missing")
-    key = _digest(KEY_VERSION, _file_digest(media), ctx.tracker_cfg, ctx.body_key)
-    path = Path(ctx.cfg.cache_dir) / "tracks" / f"{clip.id}-{key}.npz"
+    """The clip's cached track: simulated for synthetic clips, else by media kind; keyed by media content."""
+    kind = media_kind(clip)
+    root = ctx.corpus.root
+    if kind == "synthetic":
+        media = root / clip.media
+        if not media.exists():
+            raise FileNotFoundError(f"media file {media} of clip {clip.id} is missing")
+        key = _digest(KEY_VERSION, _file_digest(media), ctx.tracker_cfg, ctx.body_key)
+    else:
+        key = _digest(KEY_VERSION, media_key(clip, root, ctx.mediapipe_cfg))
+    path = Path(ctx.cfg.cache_dir) / "tracks" / f"{clip.id.replace('/', '_')}-{key}.npz"
     if not path.exists():
-        params, identity, camera = ctx.corpus.ground_truth(clip)
-        track = simulate_track(clip.id, as_tensors(params), torch.as_tensor(identity), camera, clip.fps, ctx.body, ctx.tracker_cfg)
+        if kind == "synthetic":
+            params, identity, camera = ctx.ground_truth(clip)
+            track = simulate_track(clip.id, as_tensors(params), torch.as_tensor(identity), camera, clip.fps,
+                                   ctx.body, ctx.tracker_cfg)
+        else:
+            track = track_real_clip(clip, root, ctx.mediapipe_cfg)
         save_track(track, path)
     return path
 
@@ -141,8 +220,9 @@ def fit_clip(clip: Clip, track_path: Path, key: str, ctx: FitContext) -> FittedC
     track = load_track(track_path)
     result = fit_track(track, ctx.body, ctx.fitting_cfg)
     metrics = dict(result.metrics)
-    if ctx.cfg.corpus == "synthetic":
-        gt_params, gt_identity, gt_camera = ctx.corpus.ground_truth(clip)
+    metrics.update(part_reprojection_px(ctx.body, result.params, result.identity, result.camera, track))
+    if media_kind(clip) == "synthetic":
+        gt_params, gt_identity, gt_camera = ctx.ground_truth(clip)
         metrics.update(ground_truth_errors(ctx.body, result.params, result.identity, result.camera,
                                            gt_params, gt_identity, gt_camera.as_dict()))
         if track.init is not None:  # what refinement gained over the tracker initialisation
@@ -157,81 +237,29 @@ def fit_clip(clip: Clip, track_path: Path, key: str, ctx: FitContext) -> FittedC
 def process_clip(clip: Clip, ctx: FitContext) -> ClipOutcome:
     """Track + fit + write one clip's part file; never raises for a bad clip (quarantines it)."""
     start = time.perf_counter()
+    seen: dict[str, Any] = {}
     try:
         track_path = track_clip(clip, ctx)
+        track = load_track(track_path)
+        seen = {"coverage": track_coverage(track), "track_frames": track.num_frames}
         key = fit_key(track_path, ctx)
-        part = Path(ctx.cfg.cache_dir) / "parts" / f"{clip.id}-{key}.parquet"
+        part = Path(ctx.cfg.cache_dir) / "parts" / f"{clip.id.replace('/', '_')}-{key}.parquet"
         if part.exists():
             fitted = read_shard(part).clips[0]
-            return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics, frames=fitted.num_frames)
+            return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics,
+                               frames=fitted.num_frames, **seen)
         fitted = fit_clip(clip, track_path, key, ctx)
         part.parent.mkdir(parents=True, exist_ok=True)
         write_shard(part, [fitted], ctx.body.layout)
         return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
-                           frames=fitted.num_frames, seconds=time.perf_counter() - start)
+                           frames=fitted.num_frames, seconds=time.perf_counter() - start, **seen)
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - any failure of one clip quarantines that clip only
         reason = f"{type(exc).__name__}: {exc}"
-        return ClipOutcome(clip.id, clip.split, "quarantined", reason=reason, seconds=time.perf_counter() - start)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
-
-
-@dataclass(frozen=True)
-class FitCorpusReport:
-    shards: dict[str, str]
-    outcomes: list[ClipOutcome]
-    summary: dict[str, float]
-
-
-def summarise(outcomes: list[ClipOutcome], wall_seconds: float) -> dict[str, float]:
-    done = [o for o in outcomes if o.status != "quarantined"]
-    fitted = [o for o in outcomes if o.status == "fitted"]
-    summary: dict[str, float] = {
-        "clips_total": len(outcomes),
-        "clips_fitted": len(fitted),
-        "clips_cached": sum(o.status == "cached" for o in outcomes),
-        "clips_quarantined": sum(o.status == "quarantined" for o in outcomes),
-        "frames": sum(o.frames for o in done),
-        "wall_seconds": wall_seconds,
-        # per worker process (frames / seconds spent fitting) and for the whole run (frames / wall time)
-        "fit_frames_per_s_per_worker": (sum(o.frames for o in fitted) / sum(o.seconds for o in fitted)) if fitted else math.nan,
-        "fit_frames_per_s_wall": sum(o.frames for o in fitted) / wall_seconds if fitted and wall_seconds > 0 else math.nan,
-    }
-    keys = sorted({k for o in done for k in o.metrics})
-    for key in keys:
-        values = [o.metrics[key] for o in done if key in o.metrics and o.metrics[key] == o.metrics[key]]
-        if values:
-            summary[f"{key}_mean"] = float(np.mean(values))
-            summary[f"{key}_median"] = float(np.median(values))
-    return summary
-
-
-def consolidate(outcomes: list[ClipOutcome], layout, cfg: FitCorpusConfig, wall_seconds: float) -> FitCorpusReport:
-    """Gather part files into one shard per split; write the quarantine report and summary."""
-    out_dir = Path(cfg.shards_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    # Every standard split gets a shard (possibly empty), so downstream stages and DVC outputs always exist.
-    by_split: dict[str, list[FittedClip]] = {split: [] for split in STANDARD_SPLITS}
-    for o in sorted(outcomes, key=lambda o: o.clip_id):
-        if o.part is not None:
-            by_split.setdefault(o.split, []).extend(read_shard(o.part).clips)
-    shards = {split: str(write_shard(out_dir / f"{split}.parquet", clips, layout)) for split, clips in by_split.items()}
-    for stale in out_dir.glob("*.parquet"):
-        if str(stale) not in shards.values():
-            stale.unlink()
-    quarantine = [{"clip_id": o.clip_id, "split": o.split, "reason": o.reason} for o in outcomes if o.status == "quarantined"]
-    _atomic_write_text(out_dir / "quarantine.jsonl", "".join(json.dumps(q) + "\n" for q in quarantine))
-    summary = summarise(outcomes, wall_seconds)
-    _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, sort_keys=True))
-    return FitCorpusReport(shards=shards, outcomes=outcomes, summary=summary)
+        group = exc.group if isinstance(exc, ClipRefused) else type(exc).__name__
+        return ClipOutcome(clip.id, clip.split, "quarantined", reason=reason, seconds=time.perf_counter() - start,
+                           group=group, file=clip.media, **seen)
 
 
 _WORKER_CTX: FitContext | None = None
@@ -257,7 +285,8 @@ def _outcomes(ctx: FitContext, clips: list[Clip]) -> Iterator[ClipOutcome]:
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
 
-    worker_ctx = FitContext(ctx.cfg, ctx.body_cfg, ctx.tracker_cfg, ctx.fitting_cfg)  # workers build their own model
+    worker_ctx = FitContext(ctx.cfg, ctx.body_cfg, ctx.tracker_cfg, ctx.fitting_cfg,
+                            mediapipe_cfg=ctx.mediapipe_cfg)  # workers build their own model
     with ProcessPoolExecutor(ctx.cfg.workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
                              initargs=(worker_ctx,)) as pool:
         futures = [pool.submit(_worker_process, c) for c in clips]
@@ -278,12 +307,16 @@ def run_fit_corpus(
     progress: bool = True,
     on_outcome: Callable[[ClipOutcome], None] | None = None,
 ) -> FitCorpusReport:
-    """Process every clip (in ``cfg.workers`` processes) and consolidate the shards."""
+    """List the corpus (unless ``clips`` are given), process every clip (in ``cfg.workers`` processes) and
+    consolidate the shards; the rows the listing refused are reported as quarantined."""
     from tqdm.auto import tqdm
 
-    clips = list(clips) if clips is not None else list_clips(ctx.cfg)
     start = time.perf_counter()
     outcomes: list[ClipOutcome] = []
+    if clips is None:
+        listing = list_corpus(ctx.cfg)
+        clips, outcomes = listing.clips, listing_outcomes(listing)
+    clips = list(clips)
     with tqdm(total=len(clips), desc="fit-corpus", unit="clip", disable=not progress) as bar:
         for outcome in _outcomes(ctx, clips):
             outcomes.append(outcome)
@@ -294,31 +327,6 @@ def run_fit_corpus(
     return consolidate(outcomes, ctx.body.layout, ctx.cfg, time.perf_counter() - start)
 
 
-def log_report(params, ctx: FitContext, report: FitCorpusReport) -> str | None:
-    """Log a fit-corpus run to MLflow: params, summary metrics, quarantine report, fitted-vs-truth pictures."""
-    from m3t.config import flat_params
-    from m3t.experiment import start_run
-    from m3t.render.mesh import log_fitted_frame
-    from m3t.render.skeleton import render_fit_comparison
-
-    with start_run(params.experiment, "fit-corpus") as run:
-        sections = ("body", "tracker", "fitting", "fit_corpus")
-        run.log_params({k: v for k, v in flat_params(params).items() if k.split(".")[0] in sections})
-        run.log_metrics(report.summary)
-        out_dir = Path(ctx.cfg.shards_dir)
-        run.log_artifact(out_dir / "quarantine.jsonl")
-        run.log_artifact(out_dir / "summary.json")
-        for outcome in [o for o in report.outcomes if o.part is not None][: ctx.cfg.render_clips]:
-            fitted = read_shard(outcome.part).clips[0]
-            truth = ctx.corpus.ground_truth(fitted.clip) if ctx.cfg.corpus == "synthetic" else None
-            image = Path(ctx.cfg.cache_dir) / "render" / f"{fitted.clip.id}.png"
-            run.log_artifact(render_fit_comparison(ctx.body, fitted, truth, image), "fit_vs_ground_truth")
-            # the fitted mesh of the middle frame: PLY + a rendered picture
-            log_fitted_frame(run, ctx.body, fitted.params, fitted.identity, fitted.num_frames // 2,
-                             Path(ctx.cfg.cache_dir) / "render", fitted.camera, stem=fitted.clip.id)
-        return run.run_id
-
-
 def main(argv: list[str] | None = None) -> FitCorpusReport:
     """DVC entry point: params.yaml -> shards + an MLflow run."""
     from m3t.config import load_params
@@ -326,12 +334,13 @@ def main(argv: list[str] | None = None) -> FitCorpusReport:
     parser = argparse.ArgumentParser(description="fit-corpus: clips -> tracks -> fits -> Parquet shards")
     parser.add_argument("--params", default="params.yaml")
     parser.add_argument("--preset", default="default")
+    parser.add_argument("--corpus", default=None, help="a name of corpora in params.yaml (default fit_corpus.corpus)")
     args = parser.parse_args(argv)
     params = load_params(args.params, preset=args.preset)
-    ctx = FitContext(params.fit_corpus, params.body, params.tracker, params.fitting)
+    ctx = FitContext(for_corpus(params, args.corpus), params.body, params.tracker, params.fitting)
     report = run_fit_corpus(ctx)
     log_report(params, ctx, report)
-    print(json.dumps(report.summary, indent=2, sort_keys=True))
+    print(json.dumps({**report.summary, "quality": report.quality}, indent=2, sort_keys=True, default=str))
     return report
 
 

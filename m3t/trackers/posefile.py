@@ -11,7 +11,8 @@ apart, centre (250, 250), z ~250), which is still a valid image for fitting with
 
 Components and points are matched by name, so reordered or reduced files map correctly; face points past
 the 468 mesh points (iris) are dropped. Points with zero confidence (pose-format's masked points) become NaN
-with confidence 0.
+with confidence 0. Decoding is :func:`m3t.corpora.posefile.read_pose` (the project's one ``.pose`` reader);
+this module only maps its :class:`~m3t.corpora.posefile.PoseData` onto the track layout.
 
 Axis legend: T frames, K = 543 landmarks of the ``mediapipe_holistic`` layout.
 """
@@ -22,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from m3t.corpora.base import CorpusError
+from m3t.corpora.posefile import PoseData, pose_data, read_pose
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 
 # MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order), as pose-format writes them.
@@ -70,35 +73,37 @@ def _match(offsets: dict, component: str, names: tuple[str, ...], first_target: 
     return [a for a, _ in pairs], [b for _, b in pairs]
 
 
-def _offsets(header, source: str) -> dict[str, tuple[int, list[str]]]:
+def _offsets(data: PoseData, source: str) -> dict[str, tuple[int, list[str]]]:
     """Component name -> (index of its first point on the file's point axis, its point names)."""
+    if len(data.point_names) != len(data.components):
+        raise PoseFileError(f".pose data of {source} carries no point names; read it with "
+                            "m3t.corpora.posefile.read_pose / pose_data")
     offsets, start = {}, 0
-    for component in header.components:
-        offsets[component.name] = (start, list(component.points))
-        start += len(component.points)
+    for (name, _), points in zip(data.components, data.point_names):
+        offsets[name] = (start, list(points))
+        start += len(points)
     if COMPONENTS["pose"][0] not in offsets:
         raise PoseFileError(f".pose file {source} is not MediaPipe Holistic: components "
-                            f"{[c.name for c in header.components]}, expected {[c for c, _ in COMPONENTS.values()]}")
+                            f"{[c for c, _ in data.components]}, expected {[c for c, _ in COMPONENTS.values()]}")
     return offsets
 
 
-def pose_to_track(pose, person: int = 0, source: str = "<pose>") -> PoseFileTrack:
-    """A ``pose_format.Pose`` with holistic components -> track in the ``mediapipe_holistic`` layout.
+def posedata_to_track(pose: PoseData, source: str = "<pose>") -> PoseFileTrack:
+    """One person's holistic ``.pose`` data -> track in the ``mediapipe_holistic`` layout (the one conversion:
+    single files and spelled words, i.e. concatenated letter files, both come here).
 
     Parameters
     ----------
-    pose : pose_format.Pose; body data (T, P, N, D) with D = 2 or 3, confidence (T, P, N)
-    person : which person of the P axis to take
-    source : the file name, for error messages
+    pose : PoseData; points (T, N, 3), confidence (T, N) over the file's N points
+    source : the file name (or word), for error messages
+
+    The track keeps the file's z as extra ``depth`` (T, K) when the file has one, and ``POSE_WORLD_LANDMARKS``
+    as extra ``pose_world`` (T, 33, 3).
     """
-    header, body = pose.header, pose.body
-    data = np.asarray(np.ma.getdata(body.data), dtype=np.float32)  # (T, P, N, D)
-    conf = np.asarray(body.confidence, dtype=np.float32)  # (T, P, N)
-    if data.ndim != 4 or data.shape[0] == 0:
+    data, conf = pose.points, pose.confidence  # (T, N, 3), (T, N)
+    if data.ndim != 3 or data.shape[0] == 0:
         raise PoseFileError(f".pose file {source} has no frames (data shape {data.shape})")
-    if not 0 <= person < data.shape[1]:
-        raise PoseFileError(f".pose file {source} has {data.shape[1]} person(s); person={person} does not exist")
-    offsets = _offsets(header, source)
+    offsets = _offsets(pose, source)
     parts = landmark_slices("mediapipe_holistic")
     src, dst = [], []
     for part, (component, names) in COMPONENTS.items():
@@ -107,12 +112,11 @@ def pose_to_track(pose, person: int = 0, source: str = "<pose>") -> PoseFileTrac
     if not src:
         raise PoseFileError(f".pose file {source}: no point of its holistic components has a MediaPipe landmark "
                             f"name (e.g. {POSE_POINTS[0]!r}); it was not written by pose-format's holistic reader")
-    data, conf = data[:, person], conf[:, person]  # (T, N, D), (T, N)
-    missing = ~(conf > 0) | ~np.isfinite(data).all(-1) | np.ma.getmaskarray(body.data)[:, person].any(-1)
+    missing = ~(conf > 0) | ~np.isfinite(data).all(-1)  # (T, N)
 
     T, K = data.shape[0], sum(MEDIAPIPE_HOLISTIC_PARTS.values())
     points3d = np.full((T, K, 3), np.nan, dtype=np.float32)
-    points3d[:, dst, : min(3, data.shape[-1])] = data[:, src, :3]
+    points3d[:, dst, : pose.dims] = data[:, src, : pose.dims]
     confidence = np.zeros((T, K), dtype=np.float32)
     confidence[:, dst] = np.clip(conf[:, src], 0.0, 1.0)
     gone = np.ones((T, K), dtype=bool)
@@ -120,31 +124,42 @@ def pose_to_track(pose, person: int = 0, source: str = "<pose>") -> PoseFileTrac
     points3d[gone] = np.nan
     confidence[gone] = 0.0
 
-    width, height = int(header.dimensions.width), int(header.dimensions.height)
+    width, height = pose.width, pose.height
     if width <= 0 or height <= 0:  # no video size recorded: the smallest image holding every point
         seen = points3d[..., :2][~gone]
         width, height = (int(np.ceil(v)) + 1 for v in (seen.max(0) if len(seen) else (1, 1)))
-    track = Track(points3d[..., :2].copy(), confidence, "mediapipe_holistic", (width, height), float(body.fps),
-                  np.full(4, np.nan, dtype=np.float32), TRACKER_NAME)
 
     pose_world = None
     world_src, world_dst = _match(offsets, WORLD_COMPONENT, POSE_POINTS, 0)
-    if world_src and data.shape[-1] >= 3:
+    if world_src and pose.dims >= 3:
         pose_world = np.full((T, len(POSE_POINTS), 3), np.nan, dtype=np.float32)
         pose_world[:, world_dst] = np.where(missing[:, world_src, None], np.nan, data[:, world_src, :3])
+    extras = {}
+    if pose.dims >= 3:
+        extras["depth"] = points3d[..., 2].copy()
+    if pose_world is not None:
+        extras["pose_world"] = pose_world
+    track = Track(points3d[..., :2].copy(), confidence, "mediapipe_holistic", (width, height), float(pose.fps),
+                  np.full(4, np.nan, dtype=np.float32), TRACKER_NAME, extras=extras or None)
     return PoseFileTrack(track, points3d, pose_world)
+
+
+def pose_to_track(pose, person: int = 0, source: str = "<pose>") -> PoseFileTrack:
+    """A decoded ``pose_format.Pose`` with holistic components -> track (via :class:`PoseData`)."""
+    try:
+        data = pose_data(pose, source, person)
+    except CorpusError as exc:
+        raise PoseFileError(f".pose file {exc}") from exc
+    return posedata_to_track(data, source)
 
 
 def load_pose_track(path: str | Path, person: int = 0) -> PoseFileTrack:
     """Read a holistic ``.pose`` file -> :class:`PoseFileTrack` (fps and image size from its header)."""
-    from pose_format import Pose
-
     path = Path(path)
     if not path.is_file():
         raise PoseFileError(f".pose file {path} does not exist; check the corpus' pose root")
     try:
-        pose = Pose.read(path.read_bytes())
-    except Exception as exc:  # noqa: BLE001 - pose-format raises assorted errors on truncated or foreign files
-        raise PoseFileError(f".pose file {path} is unreadable by pose-format ({type(exc).__name__}: {exc}); "
-                            "re-export it or quarantine the clip") from exc
-    return pose_to_track(pose, person=person, source=str(path))
+        data = read_pose(path, person)
+    except CorpusError as exc:
+        raise PoseFileError(f".pose file {exc}; quarantine the clip") from exc
+    return posedata_to_track(data, str(path))

@@ -12,6 +12,9 @@ tracker : str, the tracker that wrote it
 init__<modality> : (T, D_m) float32, optional per-frame body-model parameters from 3D trackers (the paper's
     NLF / WiLoR / Pixel3DMM estimates; simulated: ground truth plus tracker-like noise); the fitting
     initialisation that ``L_reg`` pulls toward. Absent -> fitting starts from the rest pose.
+extra__<name> : (T, ...) float32, optional per-frame side data kept with the track but not fitted to; may hold
+    NaN. ``pose_world``: (T, 33, 3) MediaPipe pose world landmarks (metres, hip-centred; a ``.pose`` file's
+    ``POSE_WORLD_LANDMARKS`` in its own units); ``depth``: (T, K) a ``.pose`` file's z per landmark.
 """
 from __future__ import annotations
 
@@ -51,6 +54,7 @@ class Track:
     intrinsics: np.ndarray
     tracker: str
     init: dict[str, np.ndarray] | None = None
+    extras: dict[str, np.ndarray] | None = None
 
     @property
     def num_frames(self) -> int:
@@ -74,6 +78,7 @@ def save_track(track: Track, path: str | Path) -> Path:
                 intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
                 tracker=np.array(track.tracker),
                 **{f"init__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.init or {}).items()},
+                **{f"extra__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.extras or {}).items()},
             )
         os.replace(tmp, path)
     except BaseException:
@@ -114,5 +119,11 @@ def load_track(path: str | Path) -> Track:
         if value.ndim != 2 or value.shape[0] != kp.shape[0] or not np.isfinite(value).all():
             raise TrackError(f"track file {path}: initialisation {name!r} has shape {value.shape} or non-finite "
                              f"values; expected ({kp.shape[0]}, D) finite")
+    extras = {k.removeprefix("extra__"): v.astype(np.float32) for k, v in fields.items() if k.startswith("extra__")}
+    for name, value in extras.items():
+        if value.ndim < 1 or value.shape[0] != kp.shape[0]:
+            raise TrackError(f"track file {path}: extra {name!r} has shape {value.shape}; expected "
+                             f"({kp.shape[0]}, ...), one entry per frame; delete the file and re-run tracking")
     return Track(kp, conf, landmark_set, tuple(int(v) for v in fields["image_size"]), float(fields["fps"]),
-                 np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")), init or None)
+                 np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")), init or None,
+                 extras or None)
