@@ -13,7 +13,7 @@ import torch
 
 from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
-from m3t.tokenizers.checkpoint import atomic_torch_save
+from m3t.tokenizers.checkpoint import atomic_torch_save, read_checkpoint
 
 FORMAT = "m3t-smlm-v1"
 
@@ -48,18 +48,8 @@ def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabular
     }, path)
 
 
-
-
 def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"SMLM checkpoint {path} not found; run `dvc repro train-smlm` first")
-    try:
-        payload = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same advice
-        raise ValueError(f"{path}: not a readable SMLM checkpoint ({type(exc).__name__}: {exc}); retrain it") from exc
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise ValueError(f"{path}: not an m3t SMLM checkpoint (expected format {FORMAT!r})")
+    payload = read_checkpoint(path, FORMAT, "SMLM", "train-smlm", device)
     vocab = SignVocabulary.from_dict(payload["vocabulary"])
     dims = SMLMDims(**payload["dims"])
     model = SignMotionLM(SMLMConfig(**payload["config"]), dims, backbone_config=payload["backbone_config"])

@@ -66,18 +66,26 @@ def save_tokenizer(path: str | os.PathLike, model: MotionTokenizer, group: str, 
     return atomic_torch_save(payload, path)
 
 
-def load_tokenizer(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedTokenizer:
+def read_checkpoint(path: str | os.PathLike, fmt: str, kind: str, stage: str,
+                    device: str | torch.device = "cpu") -> dict[str, Any]:
+    """The payload of a self-describing checkpoint of format ``fmt`` (``weights_only`` loading); clear errors
+    for a missing file (run ``stage``), an unreadable one and one of another format."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"tokenizer checkpoint {path} not found; run `dvc repro train-tokenizers` first")
+        raise FileNotFoundError(f"{kind} checkpoint {path} not found; run `dvc repro {stage}` first")
     try:
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same advice
-        raise ValueError(f"{path}: not a readable tokenizer checkpoint ({type(exc).__name__}: {exc}); "
+        raise ValueError(f"{path}: not a readable {kind} checkpoint ({type(exc).__name__}: {exc}); "
                          "delete it and retrain") from exc
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise ValueError(f"{path}: not an m3t tokenizer checkpoint (format {payload.get('format') if isinstance(payload, dict) else None!r}, "
-                         f"expected {FORMAT!r})")
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        found = payload.get("format") if isinstance(payload, dict) else None
+        raise ValueError(f"{path}: not an m3t {kind} checkpoint (format {found!r}, expected {fmt!r})")
+    return payload
+
+
+def load_tokenizer(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedTokenizer:
+    payload = read_checkpoint(path, FORMAT, "tokenizer", "train-tokenizers", device)
     raw = dict(payload["config"])
     raw["levels"] = tuple(raw["levels"])
     model = MotionTokenizer(VAEConfig(**raw)).to(device)
