@@ -66,7 +66,7 @@ def generate_motion(model: SignMotionLM, vocab: SignVocabulary, texts: Sequence[
     src, src_mask = (t.to(device) for t in pad_sequences(sources, vocab.pad_id))
     step = model.embed_fused(torch.from_numpy(np.stack([prompt_step(vocab, lang) for lang in languages]))[:, None].to(device))
     stepper = _Stepper(model, model.encode(model.embed(src), src_mask), src_mask, use_cache)
-    eos = torch.tensor([vocab.codebooks[s] for s in MOTION_STREAMS], device=device)
+    eos = np.array([vocab.codebooks[s] for s in MOTION_STREAMS])  # each motion head's EOS class
     batch = len(texts)
     steps, lengths = [], np.full(batch, -1)
     for u in range(max_steps):
@@ -75,13 +75,12 @@ def generate_motion(model: SignMotionLM, vocab: SignVocabulary, texts: Sequence[
         if u < min_steps:
             for lg in logits:
                 lg[..., -1] = float("-inf")  # the EOS class is each motion head's last
-        local = torch.stack([lg.argmax(-1) for lg in logits], dim=-1)  # (B, S)
-        ended = (local == eos).any(-1).cpu().numpy()
-        lengths[(lengths < 0) & ended] = u
-        steps.append(local.cpu().numpy())
+        local = torch.stack([lg.argmax(-1) for lg in logits], dim=-1).cpu().numpy()  # (B, S)
+        lengths[(lengths < 0) & (local == eos).any(-1)] = u
+        steps.append(local)
         if (lengths >= 0).all():
             break
-        codes = np.minimum(local.cpu().numpy(), eos.cpu().numpy() - 1)  # finished rows: any valid id, ignored
+        codes = np.minimum(local, eos - 1)  # finished rows: any valid id, ignored
         step = model.embed_fused(torch.from_numpy(motion_global(vocab, codes))[:, None].to(device))
     tokens = np.stack(steps, axis=1) if steps else np.zeros((batch, 0, len(MOTION_STREAMS)), dtype=np.int64)
     out = []

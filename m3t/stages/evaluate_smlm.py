@@ -28,13 +28,17 @@ def variant_name(train_config: dict) -> str:
 
 
 def run_evaluate(cfg: GenerateConfig, body: BodyModel) -> tuple[EvaluationReport, dict]:
-    loaded, evaluator, _ = evaluator_for(cfg, body)
+    setup = evaluator_for(cfg, body)
+    loaded, evaluator = setup.loaded, setup.evaluator
     out = Path(cfg.out_dir)
     shard_path, text_path = out / "generated.parquet", out / "translations.jsonl"
     for path in (shard_path, text_path):
         if not path.exists():
             raise FileNotFoundError(f"{path} not found; run the generate-smlm stage first (dvc repro generate-smlm)")
-    generated = {c.clip.id: GeneratedMotion(dict(c.tokens), stopped=True) for c in read_token_shard(shard_path).clips}
+    # generate-smlm decodes up to max_motion_tokens steps: a clip that ended earlier emitted EOS
+    limit = loaded.model.cfg.max_motion_tokens
+    generated = {c.clip.id: GeneratedMotion(dict(c.tokens), stopped=c.num_tokens < limit)
+                 for c in read_token_shard(shard_path).clips}
     translations = {}
     for line_no, line in enumerate(text_path.read_text().splitlines(), 1):
         try:

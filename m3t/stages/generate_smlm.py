@@ -21,7 +21,7 @@ from m3t.body.protocol import BodyModel
 from m3t.render.posefile import export_pose
 from m3t.render.reconstruction import render_reconstruction
 from m3t.shards.tokens import TokenClip, TokenInfo, write_token_shard
-from m3t.smlm.checkpoint import load_smlm
+from m3t.smlm.checkpoint import LoadedSMLM, load_smlm
 from m3t.smlm.evaluate import SMLMEvaluator
 from m3t.stages.tokenize import load_tokenizers
 from m3t.stages.train_smlm import load_tokens, references, split_examples
@@ -43,33 +43,40 @@ class GenerateConfig:
     export_pose: bool = True
 
 
-def evaluator_for(cfg: GenerateConfig, body: BodyModel, device: str = "cpu"):
-    """The loaded checkpoint, an evaluator over the split, and the clips skipped with their reasons."""
+@dataclass
+class GenerationSetup:
+    loaded: LoadedSMLM  # the checkpoint: model, vocabulary, training settings
+    evaluator: SMLMEvaluator  # the split's clips, their references and the frozen tokenizers
+    info: TokenInfo  # the tokenizers' streams, codebook sizes and downsampling
+    skipped: list[dict]  # clips of the split the vocabulary cannot take, with reasons
+
+
+def evaluator_for(cfg: GenerateConfig, body: BodyModel, device: str = "cpu") -> GenerationSetup:
     loaded = load_smlm(cfg.checkpoint, device)
-    tokenizers, _ = load_tokenizers(cfg.tokenizers_dir)
+    tokenizers, info = load_tokenizers(cfg.tokenizers_dir)
     skipped: list[dict] = []
     examples = split_examples(load_tokens(cfg.tokens_dir, cfg.split), loaded.vocab, loaded.model.cfg, skipped)
     evaluator = SMLMEvaluator(body, tokenizers, loaded.vocab, examples, references(cfg.shards_dir, cfg.split),
                               batch_size=cfg.batch_size)
-    return loaded, evaluator, skipped
+    return GenerationSetup(loaded, evaluator, info, skipped)
 
 
 def run_generate(cfg: GenerateConfig, body: BodyModel, progress: bool = True) -> dict[str, float]:
     from tqdm.auto import tqdm
 
-    loaded, evaluator, skipped = evaluator_for(cfg, body)
+    setup = evaluator_for(cfg, body)
+    loaded, evaluator, info, skipped = setup.loaded, setup.evaluator, setup.info, setup.skipped
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     generated = evaluator.generate(loaded.model)
     translations = evaluator.translate(loaded.model)
-    _, info = load_tokenizers(cfg.tokenizers_dir)
     clips = []
     for example in evaluator.examples:
         g = generated[example.clip_id]
         steps = len(g.tokens["body"])
         clips.append(TokenClip(evaluator.references[example.clip_id].clip, steps * info.downsample,
                                {s: g.tokens[s] for s in info.streams}))
-    write_token_shard(out / "generated.parquet", clips, TokenInfo(info.streams, info.downsample, info.tokenizers))
+    write_token_shard(out / "generated.parquet", clips, info)
     (out / "translations.jsonl").write_text("".join(
         json.dumps({"clip_id": e.clip_id, "language": e.language, "reference": e.text,
                     "hypothesis": translations[e.clip_id]}, ensure_ascii=False) + "\n" for e in evaluator.examples))
