@@ -1,0 +1,93 @@
+"""The one atomic-write mechanic: every output (shards, tracks, checkpoints, metrics JSON, reports, pictures)
+is written to a temporary file beside its target and renamed into place, so a reader never sees a
+half-written file and a killed run leaves the previous version intact.
+
+``write_text`` / ``write_bytes`` / ``write_json`` / ``write_jsonl`` also leave a file alone when its bytes
+would not change (they return whether they wrote): DVC then sees an unchanged output as unchanged, and a
+rerun on unchanged inputs touches nothing.
+
+For writers that want a path or a file object of their own (Parquet, ``np.savez``, ``torch.save``,
+``pose.write``) use :func:`atomic_path`::
+
+    with atomic_path(out) as tmp:
+        torch.save(state, tmp)
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+    """Yield a temporary path in ``path``'s folder; on success it replaces ``path``, on any error it is removed.
+
+    ``suffix`` is the temporary name's ending (``".npz"`` for writers that append their own extension).
+    The parent folder is created when missing.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes, only_if_changed: bool = True) -> bool:
+    """Write ``data`` atomically; with ``only_if_changed`` an identical file is left untouched. True if written."""
+    path = Path(path)
+    if only_if_changed and path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data:
+        return False
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return True
+
+
+def write_text(path: str | os.PathLike, text: str, only_if_changed: bool = True) -> bool:
+    return write_bytes(path, text.encode("utf-8"), only_if_changed)
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "item"):  # numpy / torch scalars
+        return value.item()
+    if isinstance(value, (set, tuple)):
+        return list(value)
+    return str(value)
+
+
+def dumps(obj: Any) -> str:
+    """The project's JSON text: sorted keys, indent 2, UTF-8 kept, numpy scalars as numbers."""
+    return json.dumps(obj, indent=2, sort_keys=True, ensure_ascii=False, default=_json_default) + "\n"
+
+
+def write_json(path: str | os.PathLike, obj: Any, only_if_changed: bool = True) -> bool:
+    return write_text(path, dumps(obj), only_if_changed)
+
+
+def write_jsonl(path: str | os.PathLike, rows: Iterable[Any], only_if_changed: bool = True) -> bool:
+    """One JSON object per line (keys in the rows' own order)."""
+    text = "".join(json.dumps(r, ensure_ascii=False, default=_json_default) + "\n" for r in rows)
+    return write_text(path, text, only_if_changed)
+
+
+def copy_file(source: str | os.PathLike, target: str | os.PathLike) -> Path:
+    """Copy ``source`` to ``target`` atomically; a missing source names itself."""
+    source, target = Path(source), Path(target)
+    if not source.is_file():
+        raise FileNotFoundError(f"{source} not found; it should have been written by the step before this copy")
+    with atomic_path(target) as tmp:
+        shutil.copyfile(source, tmp)
+    return target
