@@ -4,7 +4,7 @@
 - ``evaluate-smlm``: generate + evaluate with the current checkpoint only (deployment
   ``evaluate-smlm/nightly``, on a cron schedule: re-evaluates whatever checkpoint is in place).
 
-Thin tasks over :mod:`m3t.stages`; training is not retried (a failure there is not transient), the
+Thin tasks over :mod:`m3t.smlm.pipeline`; training is not retried (a failure there is not transient), the
 generation / evaluation tasks are (they read and write files).
 """
 from __future__ import annotations
@@ -13,26 +13,23 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from m3t.config import Params, load_params
-from m3t.stages import evaluate_smlm as evaluate_stage
-from m3t.stages import generate_smlm as generate_stage
-from m3t.stages import train_smlm as train_stage
+from m3t.smlm import pipeline
 
 
 @task(cache_policy=NO_CACHE)
 def train_smlm(params: Params) -> dict:
-    return train_stage.train_and_log(params, progress=False)
+    return pipeline.train_and_log(params.smlm, params.smlm_train, params.body, params.data, params.experiment,
+                                  progress=False)
 
 
 @task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
 def generate(params: Params) -> dict:
-    from m3t.body.factory import load_body_model
-
-    return generate_stage.run_generate(params.smlm_generate, load_body_model(params.body), progress=False)
+    return pipeline.generate(params.smlm_generate, params.data, params.body, progress=False)
 
 
 @task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
 def evaluate(params: Params) -> dict:
-    return evaluate_stage.evaluate_and_log(params)
+    return pipeline.evaluate_and_log(params.smlm_generate, params.data, params.body, params.experiment)
 
 
 def _headline(summary: dict) -> str:

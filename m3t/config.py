@@ -8,7 +8,6 @@ what is allowed. Components receive only their own section (``params.fitting``),
 from __future__ import annotations
 
 import dataclasses
-import json
 import types
 import typing
 from dataclasses import dataclass, fields
@@ -17,17 +16,18 @@ from typing import Any, Literal, get_args, get_origin
 
 import yaml
 
-from m3t.body.factory import BodyConfig
-from m3t.corpora.synthetic import SyntheticCorpusConfig
+from m3t.body.config import BodyConfig
+from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
+from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
-from m3t.fitting.fit import FittingConfig
+from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig
+from m3t.fitting.fusion import FusionConfig
+from m3t.shards.folders import DataConfig
+from m3t.smlm.config import GenerateConfig
 from m3t.smlm.model import SMLMConfig
 from m3t.smlm.train import SMLMTrainConfig
-from m3t.stages.fit_corpus import CorpusSource, FitCorpusConfig
-from m3t.stages.generate_smlm import GenerateConfig
-from m3t.stages.tokenize import TokenizeConfig
 from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig
-from m3t.trackers.simulated import SimulatedTrackerConfig
+from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 
 PRESET_DIR = Path(__file__).parent / "presets"
 PRESETS = ("default", "tiny", "paper")
@@ -39,23 +39,36 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class Params:
-    corpus: SyntheticCorpusConfig
+    data: DataConfig  # the corpora the downstream stages train on, and every derived folder
+    synthetic_corpus: SyntheticCorpusConfig  # the embedded corpus generator
     body: BodyConfig
-    tracker: SimulatedTrackerConfig
+    tracker: SimulatedTrackerConfig  # simulated 2D tracker of the synthetic corpus
+    mediapipe: MediaPipeConfig  # real 2D tracking of videos / frame folders
+    fusion: FusionConfig  # NLF / WiLoR / Pixel3DMM outputs -> initialisation
     fitting: FittingConfig
     fit_corpus: FitCorpusConfig
     experiment: ExperimentConfig
     tokenizer: TokenizerConfig
     tokenizer_train: TokenizerTrainConfig
-    tokenize: TokenizeConfig
     smlm: SMLMConfig
     smlm_train: SMLMTrainConfig
     smlm_generate: GenerateConfig
     corpora: dict[str, CorpusSource]  # corpus name -> where it lives and its adapter's options
 
+    def fit_job(self, corpus: str | None = None) -> FitJob:
+        """The fit-corpus job of ``corpus`` (default ``fit_corpus.default_corpus``)."""
+        name = corpus or self.fit_corpus.default_corpus
+        if name not in CORPORA:
+            raise ConfigError(f"corpus {name!r} unknown; expected one of {', '.join(CORPORA)}")
+        if name not in self.corpora:
+            raise ConfigError(f"corpora.{name} is not in params.yaml; add it with root and options "
+                              "(see the commented examples there)")
+        return FitJob(name, self.corpora[name], str(self.data.shards_dir(name)), self.fit_corpus, self.body,
+                      self.fitting, self.tracker, self.mediapipe, self.fusion)
 
-SECTIONS: dict[str, type] = {f.name: f.type for f in fields(Params)}
+
 _HINTS = typing.get_type_hints(Params)
+SECTIONS: dict[str, Any] = {f.name: _HINTS[f.name] for f in fields(Params)}  # section -> its config class
 
 
 def _type_name(tp: Any) -> str:
@@ -134,13 +147,9 @@ def build_section(cls: type, values: dict | None, section: str) -> Any:
         raise ConfigError(f"{section}: {exc}") from exc
 
 
-MOVED_KEYS = {"corpus_dir": "root", "shards_dir": "shards_dir", "options": "options"}
-
-
 def _check_corpora(raw: dict) -> dict:
-    """``corpora``: known corpus names only, each adapter's options typed by its own option dataclass."""
-    from m3t.corpora.base import CORPORA, adapter_class
-
+    """``corpora``: known corpus names only, each with ``root`` and ``options``, the options typed by the
+    adapter's own option dataclass; ``data.train_corpora`` must name corpora listed here."""
     corpora = raw.get("corpora") or {}
     if not isinstance(corpora, dict):
         raise ConfigError(f"corpora: expected a mapping of corpus names, got {type(corpora).__name__}")
@@ -149,24 +158,21 @@ def _check_corpora(raw: dict) -> dict:
         if name not in CORPORA:
             raise ConfigError(f"unknown corpus corpora.{name}; allowed corpora: {', '.join(CORPORA)}")
         if not isinstance(entry, (dict, type(None))):
-            raise ConfigError(f"corpora.{name}: expected a mapping with root, shards_dir, options; got {entry!r}")
+            raise ConfigError(f"corpora.{name}: expected a mapping with root and options; got {entry!r}")
         entry = dict(entry or {})
+        if "shards_dir" in entry:
+            raise ConfigError(f"corpora.{name}.shards_dir: shard folders are derived as data.shards_root/{name}; "
+                              "remove the key (set data.shards_root to move every corpus' shards)")
         options = entry.get("options") or {}
         if not isinstance(options, dict):
             raise ConfigError(f"corpora.{name}.options: expected a mapping, got {type(options).__name__}")
         built = build_section(adapter_class(name).config_type, options, f"corpora.{name}.options")
         out[name] = {**entry, "options": {k: getattr(built, k) for k in options}}
-    # fit_corpus.corpus_dir / shards_dir / options are filled from corpora.<corpus>; written here (a dumped
-    # Params) they must agree with it, or one of the two would be silently ignored
-    fit = raw.get("fit_corpus") or {}
-    name = fit.get("corpus", "synthetic")
-    if name in out:
-        entry = {"root": "", "options": {}, **out[name]}
-        entry["shards_dir"] = entry.get("shards_dir") or f"data/shards/{name}"
-        for key, source in MOVED_KEYS.items():
-            if key in fit and json.dumps(fit[key], sort_keys=True) != json.dumps(entry[source], sort_keys=True):
-                raise ConfigError(f"fit_corpus.{key} = {fit[key]!r} disagrees with corpora.{name}.{source} = "
-                                  f"{entry[source]!r}; set it in corpora only")
+    training = (raw.get("data") or {}).get("train_corpora", DataConfig.train_corpora)
+    missing = [c for c in (training or []) if c not in out]
+    if missing:
+        raise ConfigError(f"data.train_corpora names {', '.join(missing)}, not listed in corpora; add "
+                          f"corpora.{missing[0]} (root, options) or remove it from data.train_corpora")
     return out
 
 
@@ -206,19 +212,3 @@ def load_params(path: str | Path = "params.yaml", preset: str = "default", overr
     """Read params.yaml, overlay a preset and optional overrides, and validate every section."""
     raw = merge(merge(read_yaml(path), preset_overlay(preset)), overrides or {})
     return params_from_dict(raw)
-
-
-def to_dict(obj: Any) -> Any:
-    """Plain dicts / lists of a Params or section dataclass, for YAML and MLflow."""
-    if dataclasses.is_dataclass(obj):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in fields(obj)}
-    if isinstance(obj, tuple):
-        return [to_dict(x) for x in obj]
-    if isinstance(obj, dict):
-        return {k: to_dict(v) for k, v in obj.items()}
-    return obj
-
-
-def flat_params(params: Params) -> dict[str, Any]:
-    """``section.key -> value`` for logging."""
-    return {f"{section}.{key}": value for section, values in to_dict(params).items() for key, value in values.items()}

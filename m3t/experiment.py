@@ -6,6 +6,7 @@ workers and tests all land in the same store. Telemetry is switched off before m
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,6 +28,22 @@ class ExperimentConfig:
     artifact_dir: str = "mlruns"
     experiment: str = "m3t"
     enabled: bool = True
+
+
+def to_dict(obj: Any) -> Any:
+    """Plain dicts / lists of a config dataclass (or a tree of them), for YAML and MLflow."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple):
+        return [to_dict(x) for x in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def section_params(**sections: Any) -> dict[str, Any]:
+    """``section.key -> value`` of the given config sections (``section_params(fitting=cfg)``), for logging."""
+    return {f"{name}.{key}": value for name, cfg in sections.items() for key, value in to_dict(cfg).items()}
 
 
 def disable_telemetry() -> None:

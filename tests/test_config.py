@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from m3t.config import ConfigError, load_params, to_dict
+from m3t.config import ConfigError, load_params
+from m3t.experiment import to_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = ROOT / "params.yaml"
@@ -78,3 +79,29 @@ def test_missing_file_and_unknown_preset(tmp_path):
         load_params(tmp_path / "nope.yaml")
     with pytest.raises(ConfigError, match="unknown preset 'huge'"):
         load_params(PARAMS, preset="huge")
+
+
+def test_dataclass_defaults_equal_the_default_preset():
+    """A component built without params.yaml behaves like the default pipeline: every section's dataclass
+    defaults equal params.yaml (paper sizes live in the paper preset, not in the defaults)."""
+    from m3t.config import SECTIONS, build_section
+
+    params = load_params(PARAMS)
+    differ = []
+    for name, cls in SECTIONS.items():
+        if name == "corpora":
+            continue
+        built, default = getattr(params, name), build_section(cls, {}, name)
+        differ += [f"{name}.{f.name}: dataclass {getattr(default, f.name)!r}, params.yaml {getattr(built, f.name)!r}"
+                   for f in dataclasses.fields(cls) if getattr(default, f.name) != getattr(built, f.name)]
+    assert not differ, "\n".join(differ)
+
+
+def test_every_component_option_is_reachable_from_params():
+    """MediaPipe, fusion and the data selection are sections of their own."""
+    params = load_params(PARAMS, overrides={"mediapipe": {"static_image_mode": True}, "fusion": {"max_gap": 3},
+                                            "data": {"train_corpora": ["synthetic", "fingerspelling"]}})
+    job = params.fit_job("fingerspelling")
+    assert job.mediapipe.static_image_mode is True and job.fusion.max_gap == 3
+    assert [str(p) for p in params.data.shards_dirs] == ["data/shards/synthetic", "data/shards/fingerspelling"]
+    assert str(params.data.generated) == "data/generated/synthetic+fingerspelling"

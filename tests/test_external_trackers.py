@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import roma
 import torch
+from fusion_fixtures import ground_truth, write_nlf, write_pixel3dmm, write_wilor
+from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
 
 from m3t.body.rotations import sixd_to_matrix
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.fitting.fit import FittingConfig
-from m3t.fitting.fusion import HELD, INTERPOLATED, FusionConfig, Stream, fuse, fuse_trackers, refine
+from m3t.fitting.fusion import HELD, INTERPOLATED, FusionConfig, TrackerStream, fuse, fuse_trackers, refine
 from m3t.trackers.external import TrackerFileError, load_tracker_file, read_nlf, read_pixel3dmm, read_wilor
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
-from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx, smplfx_motion
 
 T = 10
-MIRROR = np.diag([-1.0, 1.0, 1.0])
 
 
 @pytest.fixture(scope="module")
@@ -30,72 +30,7 @@ def fx(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def truth(fx):
-    params = smplfx_motion(fx, frames=T, seed=7)
-    rot = {k: sixd_to_matrix(v.reshape(T, -1, 6)).double().numpy() for k, v in params.items() if k != "face"}
-    rot["jaw"] = sixd_to_matrix(params["face"][:, 102:]).double().numpy()
-    return params, rot
-
-
-def write_nlf(path, fx, rot):
-    pose = np.zeros((T, 55, 3))
-    pose[:, 0] = (0.0, 3.1, 0.1)  # global orient: facing the camera; left to the camera by SMPL-FX
-    for stream in ("body", "left_hand", "right_hand"):
-        cols = [SMPLX_JOINTS.index(n) for n in fx.layout[stream].labels]
-        pose[:, cols] = roma.rotmat_to_rotvec(torch.as_tensor(rot[stream])).numpy()
-    pose[:, SMPLX_JOINTS.index("jaw")] = roma.rotmat_to_rotvec(torch.as_tensor(rot["jaw"])).numpy()
-    pose = pose.reshape(T, 165)
-    pose[2] = np.nan  # NLF lost the signer in frame 2
-    betas = np.tile(np.linspace(-1, 1, 10), (T, 1))
-    np.savez(path, pose=pose, betas=betas, trans=np.tile([0.0, 0.2, 3.0], (T, 1)), confidence=np.full(T, 0.9))
-
-
-def write_wilor(path, rot):
-    rows = {"frame_index": [], "is_right": [], "global_orient": [], "hand_pose": [], "betas": [], "confidence": []}
-    for t in range(T):
-        for side, right in (("right_hand", 1), ("left_hand", 0)):
-            if right and t in (3, 4, 5):
-                continue  # the right hand was not found
-            hp = rot[side][t]
-            go = np.eye(3)
-            if not right:  # WiLoR predicts left hands as flipped right hands
-                hp, go = MIRROR @ hp @ MIRROR, MIRROR @ go @ MIRROR
-            rows["frame_index"].append(t)
-            rows["is_right"].append(right)
-            rows["global_orient"].append(go[None])
-            rows["hand_pose"].append(hp)
-            rows["betas"].append(np.zeros(10))
-            rows["confidence"].append(0.95)
-    # a spurious, less confident right hand in frame 0
-    for k, v in (("frame_index", 0), ("is_right", 1), ("global_orient", np.eye(3)[None]),
-                 ("hand_pose", np.tile(np.eye(3), (15, 1, 1))), ("betas", np.zeros(10)), ("confidence", 0.2)):
-        rows[k].append(v)
-    np.savez(path, **{k: np.asarray(v) for k, v in rows.items()})
-
-
-def pytorch3d_6d(rot: np.ndarray) -> np.ndarray:
-    return rot[..., :2, :].reshape(*rot.shape[:-2], 6)  # first two rows, as PyTorch3D stores it
-
-
-def write_pixel3dmm(folder, params, rot):
-    folder.mkdir(parents=True, exist_ok=True)
-    face = params["face"].numpy()
-    for t in range(T):
-        if t in (6, 7):
-            continue  # no face in these frames
-        frame = {
-            "flame": {"exp": face[t:t + 1, :100].astype(np.float32), "shape": np.full((1, 300), 0.1, np.float32),
-                      "eyes": np.tile(pytorch3d_6d(np.eye(3)), (1, 2)).astype(np.float32),
-                      "eyelids": face[t:t + 1, 100:102].astype(np.float32),
-                      "jaw": pytorch3d_6d(rot["jaw"][t:t + 1]).astype(np.float32),
-                      "neck": pytorch3d_6d(np.eye(3)[None]).astype(np.float32),
-                      "R": pytorch3d_6d(np.eye(3)[None]).astype(np.float32),
-                      "R_rotation_matrix": np.eye(3, dtype=np.float32)[None], "t": np.zeros((1, 3), np.float32)},
-            "img_size": np.array([512, 512]), "frame_id": t, "global_step": 100,
-            "camera": {"R_base_0": np.eye(3, dtype=np.float32)[None], "t_base_0": np.zeros((1, 3), np.float32),
-                       "fl": np.array([[4.0]], np.float32), "pp": np.zeros((1, 2), np.float32)},
-            "joint_transforms": np.tile(np.eye(4, dtype=np.float32), (1, 5, 1, 1)),
-        }
-        torch.save(frame, folder / f"{t:05d}.frame")
+    return ground_truth(fx, frames=T, seed=7)
 
 
 def rot_err_deg(a6: np.ndarray, b_rot: np.ndarray) -> float:
@@ -104,20 +39,23 @@ def rot_err_deg(a6: np.ndarray, b_rot: np.ndarray) -> float:
     return float(torch.rad2deg(roma.rotmat_geodesic_distance(rel, torch.eye(3, dtype=torch.float64))).max())
 
 
-def test_readers_recover_what_was_written(fx, truth, tmp_path):
-    params, rot = truth
-    write_nlf(tmp_path / "nlf.npz", fx, rot)
-    write_wilor(tmp_path / "wilor.npz", rot)
-    write_pixel3dmm(tmp_path / "p3dmm" / "checkpoint", params, rot)
-    nlf = read_nlf(tmp_path / "nlf.npz")
+@pytest.mark.parametrize("suffix", [".npz", ".pt"])
+def test_readers_recover_what_was_written(fx, truth, tmp_path, suffix):
+    params, rot = truth.params, truth.rot
+    write_nlf(tmp_path / f"nlf{suffix}", fx.layout, truth)
+    write_wilor(tmp_path / f"wilor{suffix}", truth)
+    write_pixel3dmm(tmp_path / "p3dmm", truth)
+    nlf = read_nlf(tmp_path / f"nlf{suffix}")
     assert list(nlf.frame) == [t for t in range(T) if t != 2]
     cols = [SMPLX_JOINTS.index(n) for n in fx.layout["body"].labels]
     assert np.allclose(nlf.rotations[:, cols], rot["body"][nlf.frame], atol=1e-6)
-    hands = read_wilor(tmp_path / "wilor.npz")
+    assert np.allclose(nlf.betas, truth.betas, atol=1e-6)
+    hands = read_wilor(tmp_path / f"wilor{suffix}")
     assert list(hands["right"].frame) == [t for t in range(T) if t not in (3, 4, 5)]
     assert np.allclose(hands["left"].hand_pose, rot["left_hand"], atol=1e-6)  # mirrored back to a left hand
     assert np.allclose(hands["right"].hand_pose[0], rot["right_hand"][0], atol=1e-6)  # the confident one
     face = read_pixel3dmm(tmp_path / "p3dmm" / "checkpoint")
+    assert list(read_pixel3dmm(tmp_path / "p3dmm").frame) == list(face.frame)  # the output folder holding it
     assert list(face.frame) == [t for t in range(T) if t not in (6, 7)]
     assert np.allclose(face.expression, params["face"][face.frame, :100].numpy(), atol=1e-6)
     assert np.allclose(face.jaw, rot["jaw"][face.frame], atol=1e-5)
@@ -125,10 +63,10 @@ def test_readers_recover_what_was_written(fx, truth, tmp_path):
 
 
 def test_fusion_covers_gaps_and_flags_them(fx, truth, tmp_path):
-    params, rot = truth
-    write_nlf(tmp_path / "nlf.npz", fx, rot)
-    write_wilor(tmp_path / "wilor.npz", rot)
-    write_pixel3dmm(tmp_path / "p3dmm", params, rot)
+    params, rot = truth.params, truth.rot
+    write_nlf(tmp_path / "nlf.npz", fx.layout, truth)
+    write_wilor(tmp_path / "wilor.npz", truth)
+    write_pixel3dmm(tmp_path / "p3dmm", truth)
     fused = fuse_trackers(fx, T, nlf=read_nlf(tmp_path / "nlf.npz"), wilor=read_wilor(tmp_path / "wilor.npz"),
                           pixel3dmm=read_pixel3dmm(tmp_path / "p3dmm"))
     fx.layout.check({k: torch.as_tensor(v) for k, v in fused.init.items()})
@@ -142,8 +80,7 @@ def test_fusion_covers_gaps_and_flags_them(fx, truth, tmp_path):
     assert rot_err_deg(fused.init["body"][2:3], rot["body"][2:3]) < 10.0  # geodesic interpolation
     assert list(fused.source["face"][6:8]) == [INTERPOLATED] * 2
     assert np.allclose(fused.init["face"][0, :102], params["face"][0, :102].numpy(), atol=1e-6)
-    assert np.allclose(fused.identity[:10], np.linspace(-1, 1, 10), atol=1e-6)
-    assert np.allclose(fused.identity[10:], 0.1, atol=1e-6)
+    assert np.allclose(fused.identity, truth.identity, atol=1e-6)
 
 
 def test_long_gaps_are_held_and_rest_when_uncovered(fx):
@@ -153,15 +90,15 @@ def test_long_gaps_are_held_and_rest_when_uncovered(fx):
     conf = np.zeros(T)
     conf[[0, 9]] = 1.0
     rest = {k: v[0].numpy() for k, v in fx.rest_params(1).items()}
-    fused = fuse(fx.layout, {"face": [Stream("x", values, conf)]}, rest, T, FusionConfig(max_gap=3))
+    fused = fuse(fx.layout, {"face": [TrackerStream("x", values, conf)]}, rest, T, FusionConfig(max_gap=3))
     assert list(fused.source["face"][1:9]) == [HELD] * 8
     assert fused.init["face"][4, 0] == 0 and fused.init["face"][5, 0] == 9  # nearest covered frame
     assert (fused.source["body"] < 0).all() and np.allclose(fused.init["body"], rest["body"])
 
 
 def test_refinement_from_fused_initialisation(fx, truth, tmp_path):
-    params, rot = truth
-    write_nlf(tmp_path / "nlf.npz", fx, rot)
+    params = truth.params
+    write_nlf(tmp_path / "nlf.npz", fx.layout, truth)
     fused = fuse_trackers(fx, T, nlf=read_nlf(tmp_path / "nlf.npz"))
     identity = torch.as_tensor(fused.identity)
     track = simulate_track("ext", params, identity, front_camera_fx(), 25.0, fx, SimulatedTrackerConfig(seed=2))

@@ -12,13 +12,7 @@ import pytest
 
 from m3t.config import ConfigError, load_params
 from m3t.corpora.clip import Clip
-from m3t.stages.fit_corpus import (
-    FitContext,
-    for_corpus,
-    list_corpus,
-    process_clip,
-    run_fit_corpus,
-)
+from m3t.fitting.corpus import FitContext, list_corpus, process_clip, run_fit_corpus
 from m3t.trackers.track import Track, TrackError, load_track, save_track
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,12 +20,17 @@ FAST = {"iterations": 30, "camera_iterations": 20}
 
 
 def context(tmp_path: Path, body, corpus: str, corpora: dict | None = None, **fit_corpus) -> FitContext:
-    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={"fitting": FAST, "corpora": corpora or {}})
-    cfg = dataclasses.replace(for_corpus(params, corpus), shards_dir=str(tmp_path / "shards"),
-                              cache_dir=str(tmp_path / "cache"), workers=1, **fit_corpus)
-    ctx = FitContext(cfg, params.body, params.tracker, params.fitting)
-    ctx._body = body  # share the session's body model
-    return ctx
+    """The corpus' job with shards in tmp/shards (``data.shards_root`` = tmp) and the session's body model."""
+    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
+        "fitting": FAST, "corpora": corpora or {}, "data": {"shards_root": str(tmp_path)},
+        "fit_corpus": {"cache_dir": str(tmp_path / "cache"), "workers": 1, **fit_corpus}})
+    job = params.fit_job(corpus)
+    job = dataclasses.replace(job, shards_dir=str(tmp_path / "shards"))
+    return FitContext(job, body)
+
+
+def run(ctx: FitContext, **kwargs):
+    return run_fit_corpus(ctx.job, ctx=ctx, progress=False, **kwargs)
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -41,12 +40,12 @@ def read_jsonl(path: Path) -> list[dict]:
 def test_fingerspelling_letters_and_a_spelled_word(tmp_path, body):
     options = {"languages": ["ase"], "words_per_language": 1, "min_letters": 2, "max_letters": 2}
     ctx = context(tmp_path, body, "fingerspelling", {"fingerspelling": {"options": options}})
-    listing = list_corpus(ctx.cfg)
+    listing = list_corpus(ctx.job)
     letters = [c for c in listing.clips if c.get("media_kind") == "pose"][:2]
     (word,) = [c for c in listing.clips if c.get("media_kind") == "spelled"]
-    report = run_fit_corpus(ctx, clips=letters + [word], progress=False)
+    report = run(ctx, clips=letters + [word])
 
-    out = Path(ctx.cfg.shards_dir)
+    out = Path(ctx.job.shards_dir)
     assert {Path(p).name for p in report.shards.values()} == {"train.parquet", "dev.parquet", "test.parquet"}
     q = json.loads((out / "quality.json").read_text())
     assert (q["corpus"], q["clips_listed"], q["clips_fitted"], q["clips_quarantined"]) == ("fingerspelling", 3, 3, 0)
@@ -61,7 +60,7 @@ def test_fingerspelling_letters_and_a_spelled_word(tmp_path, body):
     assert frames[word.id] == int(word.get("frames")) == sum(int(c.get("frames")) for c in listing.clips
                                                              if c.text in word.gloss.split())
 
-    tracks = sorted((Path(ctx.cfg.cache_dir) / "tracks").glob("*.npz"))
+    tracks = sorted((Path(ctx.job.run.cache_dir) / "tracks").glob("*.npz"))
     assert len(tracks) == 3
     for path in tracks:
         track = load_track(path)
@@ -69,22 +68,22 @@ def test_fingerspelling_letters_and_a_spelled_word(tmp_path, body):
         assert track.extras["depth"].shape == track.confidence.shape
         assert np.isnan(track.extras["depth"][track.confidence == 0]).all()
 
-    again = run_fit_corpus(ctx, clips=letters + [word], progress=False)
+    again = run(ctx, clips=letters + [word])
     assert [o.status for o in again.outcomes] == ["cached"] * 3
     assert again.quality["reproj_px_parts_median"] == pytest.approx(q["reproj_px_parts_median"])
 
 
 def phoenix(tmp_path: Path, body, **fit_corpus) -> tuple[FitContext, fx.Fixture]:
     fixture = fx.build_phoenix14t(tmp_path / "phoenix")
-    corpora = {"phoenix14t": {"root": str(fixture.root), "shards_dir": str(tmp_path / "shards")}}
+    corpora = {"phoenix14t": {"root": str(fixture.root)}}
     return context(tmp_path, body, "phoenix14t", corpora, **fit_corpus), fixture
 
 
 def test_bad_rows_and_undetectable_frames_are_quarantined(tmp_path, body):
     pytest.importorskip("mediapipe", reason="MediaPipe not installed: bash .ci/install-tracking")
     ctx, fixture = phoenix(tmp_path, body)
-    report = run_fit_corpus(ctx, progress=False)
-    records = read_jsonl(Path(ctx.cfg.shards_dir) / "quarantine.jsonl")
+    report = run(ctx)
+    records = read_jsonl(Path(ctx.job.shards_dir) / "quarantine.jsonl")
     for file, row, fragment in fixture.bad:  # the adapter's refusals: file + row + reason
         assert any(r["file"] == file and r["row"] == row and fragment in r["reason"] for r in records), (file, row)
     # The good clips were tracked: 2x2-pixel frames show nobody, which quarantines the clip (not a fake fit).
@@ -95,7 +94,7 @@ def test_bad_rows_and_undetectable_frames_are_quarantined(tmp_path, body):
     assert q["clips_listed"] == len(tracked) and q["clips_quarantined_at_listing"] == len(fixture.bad)
     assert q["quarantine_reasons"]["no person detected"] == len(tracked)
     assert q["quarantine_reasons"]["listing: missing media"] == 1
-    rows = (Path(ctx.cfg.shards_dir) / "quality.csv").read_text().splitlines()
+    rows = (Path(ctx.job.shards_dir) / "quality.csv").read_text().splitlines()
     assert len(rows) == 1 + len(records)
 
 
@@ -107,7 +106,7 @@ def test_missing_mediapipe_names_the_installer(tmp_path, body, monkeypatch):
 
     monkeypatch.setattr(holistic, "import_mediapipe", absent)
     ctx, _ = phoenix(tmp_path, body)
-    clip = list_corpus(ctx.cfg).clips[0]
+    clip = list_corpus(ctx.job).clips[0]
     outcome = process_clip(clip, ctx)
     assert outcome.status == "quarantined" and ".ci/install-tracking" in outcome.reason
     assert outcome.group == "mediapipe not installed"
@@ -135,14 +134,19 @@ def test_corpora_section_is_checked(corpora, message):
         load_params(ROOT / "params.yaml", overrides={"corpora": corpora})
 
 
-def test_fit_corpus_paths_live_in_corpora():
+def test_fit_corpus_paths_live_in_corpora_and_data():
     params = load_params(ROOT / "params.yaml")
-    cfg = for_corpus(params, "fingerspelling")
-    assert (cfg.corpus, cfg.corpus_dir, cfg.shards_dir) == ("fingerspelling", "", "data/shards/fingerspelling")
-    with pytest.raises(ConfigError, match=r"fit_corpus\.corpus_dir.*corpora\.synthetic\.root"):
+    job = params.fit_job("fingerspelling")
+    assert (job.corpus, job.source.root, job.shards_dir) == ("fingerspelling", "", "data/shards/fingerspelling")
+    assert params.fit_job().corpus == params.fit_corpus.default_corpus == "synthetic"
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) fit_corpus\.corpus_dir"):
         load_params(ROOT / "params.yaml", overrides={"fit_corpus": {"corpus_dir": "elsewhere"}})
+    with pytest.raises(ConfigError, match=r"corpora\.synthetic\.shards_dir: shard folders are derived"):
+        load_params(ROOT / "params.yaml", overrides={"corpora": {"synthetic": {"shards_dir": "elsewhere"}}})
     with pytest.raises(ConfigError, match=r"corpora\.mead is not in params.yaml"):
-        for_corpus(params, "mead")
+        params.fit_job("mead")
+    with pytest.raises(ConfigError, match=r"data\.train_corpora names how2sign, not listed in corpora"):
+        load_params(ROOT / "params.yaml", overrides={"data": {"train_corpora": ["synthetic", "how2sign"]}})
 
 
 def test_track_extras_round_trip(tmp_path):

@@ -222,7 +222,9 @@ def test_fit_corpus_runs_with_smplfx(fx_files, tmp_path):
     """fit-corpus end to end with ``body.model: smplfx`` (load_body_model) on a tiny SMPL-FX corpus."""
     from m3t.corpora.clip import Clip
     from m3t.corpora.synthetic import SyntheticClip, write_corpus
-    from m3t.stages.fit_corpus import FitContext, FitCorpusConfig, run_fit_corpus
+    from m3t.corpora.base import CorpusSource
+    from m3t.fitting.config import FitCorpusConfig, FitJob
+    from m3t.fitting.corpus import run_fit_corpus
 
     cfg = BodyConfig(model="smplfx", smplx_path=str(fx_files.smplx), flame_path=str(fx_files.flame),
                      flame_correspondence_path=str(fx_files.correspondence))
@@ -234,10 +236,10 @@ def test_fit_corpus_runs_with_smplfx(fx_files, tmp_path):
         clip = Clip(f"fx-{i}", "synthetic", split, "ASL", "s0", "hello", "HELLO", f"motion/fx-{i}.npz", 25.0)
         clips.append(SyntheticClip(clip, params, np.zeros(110, dtype=np.float32), front_camera_fx()))
     write_corpus(clips, tmp_path / "corpus")
-    fc = FitCorpusConfig(corpus_dir=str(tmp_path / "corpus"), shards_dir=str(tmp_path / "shards"),
-                         cache_dir=str(tmp_path / "cache"), workers=1)
-    ctx = FitContext(fc, cfg, SimulatedTrackerConfig(seed=0), FittingConfig(iterations=20, camera_iterations=10))
-    report = run_fit_corpus(ctx, progress=False)
+    job = FitJob("synthetic", CorpusSource(str(tmp_path / "corpus")), str(tmp_path / "shards"),
+                 FitCorpusConfig(cache_dir=str(tmp_path / "cache"), workers=1), cfg,
+                 FittingConfig(iterations=20, camera_iterations=10), SimulatedTrackerConfig(seed=0))
+    report = run_fit_corpus(job, progress=False)
     assert report.summary["clips_quarantined"] == 0, [o.reason for o in report.outcomes]
     assert report.summary["clips_fitted"] == 3
     assert np.isfinite(report.summary["pa_joint_mm_mean"])

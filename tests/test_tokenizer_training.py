@@ -11,7 +11,8 @@ import pytest
 import torch
 import yaml
 
-from m3t.config import load_params, to_dict
+from m3t.config import load_params
+from m3t.experiment import to_dict
 from m3t.corpora.clip import Clip
 from m3t.runtime import DistributedContext
 from m3t.shards.io import read_shard, write_shard
@@ -29,8 +30,10 @@ SPLITS = {"train": 4, "dev": 1, "test": 1}
 
 @pytest.fixture(scope="module")
 def shards_dir(body, tmp_path_factory) -> Path:
-    """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames)."""
-    root = tmp_path_factory.mktemp("shards")
+    """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames), in the folder of
+    corpus ``synthetic`` under a shards root (``data.shards_root`` = its parent)."""
+    root = tmp_path_factory.mktemp("shards") / "synthetic"
+    root.mkdir()
     seed = 0
     for split, count in SPLITS.items():
         clips = []
@@ -46,7 +49,7 @@ def shards_dir(body, tmp_path_factory) -> Path:
 
 
 def tiny_cfg(tmp_path: Path, **overrides) -> TokenizerTrainConfig:
-    base = TokenizerTrainConfig(out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"), epochs=4,
+    base = TokenizerTrainConfig(cache_dir=str(tmp_path / "cache"), epochs=4,
                                 warmup_epochs=1, lr=2e-3, batch_size=4, window=16, windows_per_clip=2, device="cpu")
     return dataclasses.replace(base, **overrides)
 
@@ -135,10 +138,9 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
 
     params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
         "body": {"cache_dir": str(ROOT / ".cache" / "anny")},
-        "tokenizer_train": {"shards_dir": str(shards_dir), "out_dir": str(tmp_path / "tok"),
-                            "cache_dir": str(tmp_path / "cache")},
-        "tokenize": {"tokenizers_dir": str(tmp_path / "tok"), "shards_dir": str(shards_dir),
-                     "out_dir": str(tmp_path / "tokens")}})
+        "data": {"shards_root": str(shards_dir.parent), "tokens_root": str(tmp_path / "tokens"),
+                 "models_dir": str(tmp_path / "models")},
+        "tokenizer_train": {"cache_dir": str(tmp_path / "cache")}})
     params_file = tmp_path / "params.yaml"
     params_file.write_text(yaml.safe_dump(to_dict(params)))
     with prefect_test_harness():
@@ -148,14 +150,14 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
     assert report["face"]["codebook_size"] == 216 and 0 < report["face"]["utilisation_pct"] <= 100
     assert all(math.isfinite(report[g]["test_pa_vpe_mm"]) for g in report)
     for group in report:
-        assert (tmp_path / "tok" / f"{group}.pt").exists()
-        assert (tmp_path / "tok" / "plots" / f"tokens_{group}.png").exists()
-        assert (tmp_path / "tok" / "plots" / f"reconstruction_{group}.gif").exists()
+        assert (tmp_path / "models" / "tokenizers" / f"{group}.pt").exists()
+        assert (tmp_path / "models" / "tokenizers" / "plots" / f"tokens_{group}.png").exists()
+        assert (tmp_path / "models" / "tokenizers" / "plots" / f"reconstruction_{group}.gif").exists()
     for split in SPLITS:
-        shard = read_token_shard(tmp_path / "tokens" / f"{split}.parquet")
+        shard = read_token_shard(tmp_path / "tokens" / "synthetic" / f"{split}.parquet")
         fitted = read_shard(shards_dir / f"{split}.parquet").clips
         assert [c.clip.id for c in shard.clips] == [c.clip.id for c in fitted]
         assert shard.info.streams == {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}
         for tok, fit in zip(shard.clips, fitted):
             assert all(len(t) == -(-fit.num_frames // 4) for t in tok.tokens.values())
-    assert result["tokens"]["rejected"] == 0
+    assert result["tokens"]["synthetic"]["rejected"] == 0

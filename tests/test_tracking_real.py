@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
+from m3t.body.protocol import as_tensors
 from m3t.camera import project
-from m3t.fitting.evaluate import as_tensors
 from m3t.fitting.fit import FittingConfig, fit_track
 from m3t.trackers.media import MediaError, list_frame_files, open_media
 from m3t.trackers.posefile import PoseFileError, load_pose_track, pose_to_track

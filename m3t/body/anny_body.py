@@ -28,7 +28,14 @@ import numpy as np
 import roma
 import torch
 
-from m3t.body.protocol import BodyOutput, Correspondence, KeypointIndex, Modality, ModalityLayout, Params
+from m3t.body.protocol import (
+    BodyOutput,
+    Correspondence,
+    KeypointIndex,
+    Modality,
+    ModalityLayout,
+    Params,
+)
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 
 DATA_DIR = Path(__file__).parent / "data"

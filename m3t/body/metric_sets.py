@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel, Correspondence
+from m3t.body.protocol import BodyModel, Correspondence, as_tensors
 
 BODY_POINTS = ("neck", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
                "left_ear", "right_ear", "left_eye", "right_eye", "nose")
@@ -92,3 +92,16 @@ def metric_points(body: BodyModel, params: dict[str, torch.Tensor], identity: to
     """(T, K, 3) positions of every metric set for a parameter sequence (sparse forward)."""
     sets = sets or metric_keypoints(body)
     return {name: body.forward_keypoints(params, identity, body.keypoint_set(c)) for name, c in sets.items()}
+
+
+def metric_joints(body: BodyModel) -> Correspondence:
+    """Joint-only correspondence over the bones driven by rotation streams."""
+    names = [label for m in body.layout.modalities if m.kind == "rotation6d" for label in m.labels]
+    index = np.array([body.joint_names.index(n) for n in names], dtype=np.int64)
+    return Correspondence(tuple(names), np.ones(len(names), dtype=np.int64), index)
+
+
+def joints_for(body: BodyModel, params: dict[str, np.ndarray], identity: np.ndarray) -> torch.Tensor:
+    """(T, J, 3) metric joints of a parameter sequence."""
+    kp = body.keypoint_set(metric_joints(body))
+    return body.forward_keypoints(as_tensors(params), torch.as_tensor(identity, dtype=torch.float32), kp)

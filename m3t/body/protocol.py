@@ -19,6 +19,16 @@ Params = Mapping[str, torch.Tensor]
 """Per-frame parameters: modality name -> (B, D_m)."""
 
 
+def as_tensors(params: Mapping[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """numpy (T, D) per modality -> float32 tensors (the form :meth:`BodyModel.forward` takes)."""
+    return {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
+
+
+STREAM_ORDER: tuple[str, ...] = ("body", "left_hand", "right_hand", "face")
+"""The project's one order of the motion streams (M3T's {body, left hand, right hand, face}): token shard
+columns, the SMLM's heads and fused inputs, and every per-stream loop follow it."""
+
+
 @dataclass(frozen=True)
 class Modality:
     """One parameter stream. ``kind='rotation6d'``: one 6D rotation per label; ``'scalar'``: one value per

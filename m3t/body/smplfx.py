@@ -27,10 +27,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyOutput, Correspondence, KeypointIndex, Modality, ModalityLayout, Params
+from m3t.body.protocol import (
+    BodyOutput,
+    Correspondence,
+    KeypointIndex,
+    Modality,
+    ModalityLayout,
+    Params,
+)
 from m3t.body.rotations import identity_6d, sixd_to_matrix
 from m3t.body.smplfx_build import (
-    BODY_POSE_JOINTS, POSED_JOINTS, ROOT, SMPLFXData, SMPLFXFiles, build_smplfx, hand_joint_names,
+    BODY_POSE_JOINTS,
+    POSED_JOINTS,
+    ROOT,
+    SMPLFXData,
+    SMPLFXFiles,
+    build_smplfx,
+    hand_joint_names,
 )
 
 DATA_DIR = Path(__file__).parent / "data"

@@ -263,6 +263,16 @@ _ADAPTERS = {
 CORPORA: tuple[str, ...] = tuple(_ADAPTERS)
 
 
+@dataclass(frozen=True)
+class CorpusSource:
+    """Where one corpus lives (params.yaml ``corpora.<name>``). ``root`` "" = the adapter's default (the
+    fingerspelling lexicon inside its installed package); ``options`` = the adapter's option dataclass fields.
+    Its shards go to ``data.shards_root/<name>`` (:class:`m3t.shards.folders.DataConfig`)."""
+
+    root: str = ""
+    options: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
 def adapter_class(name: str) -> type[CorpusAdapter]:
     if name not in _ADAPTERS:
         raise ValueError(f"corpus {name!r} unknown; expected one of {', '.join(CORPORA)}")

@@ -18,8 +18,16 @@ from pathlib import PurePosixPath
 from typing import Any
 
 from m3t.corpora.base import (
-    SPLITS, Collector, CorpusAdapter, CorpusError, Listing, check_header, load_data_pickle, media_folder,
-    read_lines, with_kind,
+    SPLITS,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    check_header,
+    load_data_pickle,
+    media_folder,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

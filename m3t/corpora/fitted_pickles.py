@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from m3t.corpora.base import (
-    Collector, CorpusAdapter, CorpusError, Listing, load_data_pickle, read_lines, with_kind,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    load_data_pickle,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

@@ -16,7 +16,14 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from m3t.corpora.base import (
-    Collector, CorpusAdapter, Listing, check_header, find_file, media_file, read_lines, with_kind,
+    Collector,
+    CorpusAdapter,
+    Listing,
+    check_header,
+    find_file,
+    media_file,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

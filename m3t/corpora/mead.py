@@ -20,7 +20,13 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from m3t.corpora.base import (
-    Collector, CorpusAdapter, CorpusError, Listing, check_fractions, hash_split, with_kind,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    check_fractions,
+    hash_split,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

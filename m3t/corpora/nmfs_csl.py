@@ -22,7 +22,14 @@ from dataclasses import dataclass
 from pathlib import PurePosixPath
 
 from m3t.corpora.base import (
-    Collector, CorpusAdapter, CorpusError, Listing, hash_unit, media_file, read_lines, with_kind,
+    Collector,
+    CorpusAdapter,
+    CorpusError,
+    Listing,
+    hash_unit,
+    media_file,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

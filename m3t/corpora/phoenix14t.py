@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from m3t.corpora.base import (
-    SPLITS, Collector, CorpusAdapter, Listing, check_header, find_file, media_folder, read_lines, with_kind,
+    SPLITS,
+    Collector,
+    CorpusAdapter,
+    Listing,
+    check_header,
+    find_file,
+    media_folder,
+    read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 

@@ -37,30 +37,21 @@ from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
 from m3t.camera import Camera, look_at
 from m3t.corpora.clip import Clip
+from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.corpora.synthetic_lexicon import (
-    BROWS, CONCEPTS, EYES, HANDSHAPES, LANGUAGES, VISEMES, SignForm, build_lexicon, make_sentence,
+    BROWS,
+    CONCEPTS,
+    EYES,
+    HANDSHAPES,
+    LANGUAGES,
+    VISEMES,
+    SignForm,
+    build_lexicon,
+    make_sentence,
 )
 
 SPLIT_CYCLE = ("train", "dev", "test") + ("train",) * 7  # 80 / 10 / 10, every split non-empty from 3 clips
 ARM = ("clavicle", "upperarm01", "lowerarm01", "wrist")
-
-
-@dataclass(frozen=True)
-class SyntheticCorpusConfig:
-    seed: int = 0
-    num_signs: int = 20
-    confusing_pairs: int = 4
-    num_signers: int = 4
-    sentences_per_language: int = 10
-    isolated_per_sign: int = 1  # isolated clips per sign and signer
-    languages: tuple[str, ...] = LANGUAGES
-    fps: float = 25.0
-    min_glosses: int = 2
-    max_glosses: int = 4
-    frames_per_sign: int = 16
-    transition_frames: int = 6
-    hold_frames: int = 5
-    image_size: int = 512
 
 
 @dataclass(frozen=True)
@@ -320,7 +311,7 @@ def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[Synthet
     """All clips of the corpus (isolated signs first, then sentences per language), deterministic from the seed."""
     unknown = [lang for lang in cfg.languages if lang not in LANGUAGES]
     if unknown:
-        raise ValueError(f"corpus.languages: {unknown} unknown; allowed: {', '.join(LANGUAGES)}")
+        raise ValueError(f"synthetic_corpus.languages: {unknown} unknown; allowed: {', '.join(LANGUAGES)}")
     rng = np.random.default_rng(cfg.seed)
     lexicon = build_lexicon(cfg.num_signs, cfg.confusing_pairs, rng)
     signers = _signers(cfg, rng)
@@ -374,6 +365,18 @@ def write_corpus(clips: list[SyntheticClip], root: str | Path) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return root
+
+
+def make_corpus(cfg: SyntheticCorpusConfig, body_cfg, root: str | Path) -> dict:
+    """Generate the corpus with the body model of ``body_cfg`` and write it to ``root``; returns the clip counts."""
+    from m3t.body.factory import load_body_model
+
+    clips = generate_corpus(cfg, load_body_model(body_cfg))
+    write_corpus(clips, root)
+    splits: dict[str, int] = {}
+    for c in clips:
+        splits[c.clip.split] = splits.get(c.clip.split, 0) + 1
+    return {"clips": len(clips), "splits": splits}
 
 
 class SyntheticCorpus:

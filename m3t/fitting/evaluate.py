@@ -5,42 +5,19 @@ joints). A monocular fit only observes the body relative to its camera (a rotati
 counter-rotation of the spine give the same image), so ``joint_mm`` compares joints in each one's camera
 frame after removing the per-frame centroid (translation alignment only): it still contains the depth
 ambiguity of a single view. ``pa_joint_mm`` aligns each frame by a similarity Procrustes (the usual
-PA-MPJPE) and measures articulation only; it needs no camera, so the tracker initialisation gets it too.
+PA-MPJPE, :func:`m3t.metrics.procrustes.procrustes_error_mm`) and measures articulation only; it needs no
+camera, so the tracker initialisation gets it too.
 Axis legend: T frames, J joints, D modality dim.
 """
 from __future__ import annotations
 
 import numpy as np
-import roma
 import torch
 
-from m3t.body.protocol import BodyModel, Correspondence
+from m3t.body.metric_sets import joints_for, metric_joints  # noqa: F401 - joints_for: also used by the engine
+from m3t.body.protocol import BodyModel
 from m3t.body.rotations import sixd_to_matrix
-
-
-def metric_joints(body: BodyModel) -> Correspondence:
-    """Joint-only correspondence over the bones driven by rotation streams."""
-    names = [label for m in body.layout.modalities if m.kind == "rotation6d" for label in m.labels]
-    index = np.array([body.joint_names.index(n) for n in names], dtype=np.int64)
-    return Correspondence(tuple(names), np.ones(len(names), dtype=np.int64), index)
-
-
-def as_tensors(params: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    """numpy (T, D) per modality -> float32 tensors."""
-    return {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
-
-
-def procrustes_error_mm(pred: torch.Tensor, truth: torch.Tensor) -> float:
-    """Mean joint error (mm) after per-frame similarity alignment of pred (T, J, 3) onto truth (T, J, 3)."""
-    rot, trans, scale = roma.rigid_points_registration(pred, truth, compute_scaling=True)
-    aligned = scale[:, None, None] * (pred @ rot.transpose(-1, -2)) + trans[:, None]
-    return float(torch.linalg.norm(aligned - truth, dim=-1).mean() * 1000.0)
-
-
-def joints_for(body: BodyModel, params: dict[str, np.ndarray], identity: np.ndarray) -> torch.Tensor:
-    """(T, J, 3) metric joints of a parameter sequence."""
-    kp = body.keypoint_set(metric_joints(body))
-    return body.forward_keypoints(as_tensors(params), torch.as_tensor(identity, dtype=torch.float32), kp)
+from m3t.metrics.procrustes import procrustes_error_mm
 
 
 def _camera_frame(joints: torch.Tensor, camera: dict) -> torch.Tensor:

@@ -24,22 +24,9 @@ import torch
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import look_at, project
+from m3t.fitting.config import FittingConfig
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
-
-
-@dataclass(frozen=True)
-class FittingConfig:
-    iterations: int = 300
-    camera_iterations: int = 150
-    lr: float = 0.02
-    w_kp: float = 1.0
-    w_acc: float = 0.5
-    w_reg: float = 0.01
-    fit_identity: bool = True
-    focal_guess: float = 1.2  # focal length in units of max(width, height) when the track has no intrinsics
-    camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
-    device: str = "cpu"
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
-"""Data-quality report of one fit-corpus run: what was listed, fitted, cached and quarantined (and why), how
-much of each body part the tracks saw, and how well the fits explain the tracks.
+"""Data-quality report of one fit-corpus run: what was listed, fitted and quarantined (and why), where each
+clip's initialisation came from, how much of each body part the tracks saw, and how well the fits explain
+the tracks. A clip taken from the fit cache counts as fitted: the report describes results, not one run.
 
 Written next to the shards as ``quality.csv`` (one row per clip, quarantined ones included) and
 ``quality.json`` (the summary), plus a picture (``quality.png``: fit-error histogram, missing-part bars).
@@ -34,7 +35,7 @@ LEFT_SHOULDER, RIGHT_SHOULDER = 11, 12
 MISSING_PARTS = ("left_hand", "right_hand", "face")
 COLUMNS = ("clip_id", "split", "status", "frames", "missing_left_hand", "missing_right_hand", "missing_face",
            "reproj_px_parts", "reproj_px_pose", "reproj_px_left_hand", "reproj_px_right_hand", "reproj_px_face",
-           "reproj_shoulder_frac", "reproj_px", "group", "file", "row", "reason")
+           "reproj_shoulder_frac", "reproj_px", "init_source", "group", "file", "row", "reason")
 
 
 def track_coverage(track: Track) -> dict[str, float]:
@@ -56,8 +57,8 @@ def part_reprojection_px(body, params: dict[str, np.ndarray], identity: np.ndarr
     camera : the fit's camera (fx, fy, cx, cy, rotation (3, 3), translation (3,))
     track : the fitted track, keypoints (T, K, 2)
     """
+    from m3t.body.protocol import as_tensors
     from m3t.camera import project
-    from m3t.fitting.evaluate import as_tensors
 
     correspondence = body.correspondence(track.landmark_set)
     with torch.no_grad():
@@ -94,12 +95,14 @@ def _spread(values: list[float], name: str) -> dict[str, float]:
 
 
 def quality_report(outcomes: Iterable, corpus: str) -> QualityReport:
-    """Rows and summary from the run's clip outcomes (``m3t.stages.fit_corpus.ClipOutcome``)."""
-    outcomes = sorted(outcomes, key=lambda o: (o.status, o.clip_id or "", o.row or 0))
+    """Rows and summary from the run's clip outcomes (:class:`m3t.fitting.report.ClipOutcome`)."""
+    outcomes = sorted(outcomes, key=lambda o: (o.status == "quarantined", o.clip_id or "", o.row or 0))
     rows = []
     for o in outcomes:
         row = {c: "" for c in COLUMNS}
-        row.update({"clip_id": o.clip_id or "", "split": o.split, "status": o.status, "frames": o.frames,
+        status = "fitted" if o.status == "cached" else o.status
+        row.update({"clip_id": o.clip_id or "", "split": o.split, "status": status, "frames": o.frames,
+                    "init_source": o.init.get("init_source", ""),
                     "group": o.group or "", "file": o.file or "", "row": "" if o.row is None else o.row,
                     "reason": o.reason or ""})
         row.update({k: v for k, v in {**o.coverage, **o.metrics}.items() if k in COLUMNS})
@@ -110,13 +113,13 @@ def quality_report(outcomes: Iterable, corpus: str) -> QualityReport:
     summary: dict[str, Any] = {
         "corpus": corpus,
         "clips_listed": sum(not o.from_listing for o in outcomes),
-        "clips_fitted": sum(o.status == "fitted" for o in outcomes),
-        "clips_cached": sum(o.status == "cached" for o in outcomes),
+        "clips_fitted": len(done),
         "clips_quarantined": sum(o.status == "quarantined" for o in outcomes),
         "clips_quarantined_at_listing": sum(o.from_listing for o in outcomes),
         "quarantine_reasons": dict(Counter(o.group or "unknown" for o in outcomes if o.status == "quarantined")
                                    .most_common()),
         "frames": frames,
+        "init_sources": dict(Counter(o.init.get("init_source", "unknown").split(":")[0] for o in done).most_common()),
     }
     tracked_frames = sum(o.track_frames for o in tracked)
     for part in MISSING_PARTS:
@@ -146,7 +149,7 @@ def write_quality(report: QualityReport, out_dir: str | Path, write_text) -> tup
         writer.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()})
     write_text(out_dir / "quality.csv", buffer.getvalue())
     summary = {k: _finite_or_none(v) for k, v in report.summary.items()}  # JSON has no NaN
-    write_text(out_dir / "quality.json", json.dumps(summary, indent=2, sort_keys=True))
+    write_text(out_dir / "quality.json", json.dumps(summary, indent=2, sort_keys=True) + "\n")
     return out_dir / "quality.csv", out_dir / "quality.json"
 
 

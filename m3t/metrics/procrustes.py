@@ -14,6 +14,10 @@ the translation that maps centroids. Two solvers give the same answer:
   aligns alike.
 - ``"svd"``: the textbook SVD with ``Z = diag(1, 1, sign det(U V^T))``.
 
+Optional point ``weights`` give Umeyama's weighted problem (weighted centroids, covariance and scale
+denominator); without them every point counts alike. ``procrustes_error_mm`` is the PA error of matching frames
+(PA-MPJPE of fitting, PA-VPE of the tokenizers), in float64 whatever the input dtype.
+
 ``pa_distance_matrix`` is SOKE's ``dist_pa`` for every (prediction frame, ground-truth frame) pair, the cost
 matrix of DTW-PA-JPE: the cross-covariances of all pairs come from one matrix product, the transforms from
 the solver above, the aligned residuals from batched matrix products, in row chunks that bound memory.
@@ -192,17 +196,37 @@ def rotation_from_covariance(cov: torch.Tensor, source_sq: torch.Tensor, target_
     return rotation.movedim((0, 1), (-2, -1)), trace
 
 
-def similarity_transform(source: torch.Tensor, target: torch.Tensor, method: str = "quaternion") -> SimilarityTransform:
-    """Similarity transform aligning source (..., K, 3) onto target (..., K, 3) in least squares.
+def _point_weights(weights: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+    """(..., K) weights normalised to sum 1 per leading index; ValueError naming the fix otherwise."""
+    weights = torch.as_tensor(weights, dtype=source.dtype, device=source.device)
+    if weights.shape != source.shape[:-1]:
+        raise ValueError(f"weights {tuple(weights.shape)} must be (..., K) = {tuple(source.shape[:-1])}, one per point")
+    if bool((weights < 0).any()) or not bool((weights.sum(-1) > 0).all()):
+        raise ValueError("weights must be non-negative with a positive sum per point set; drop all-zero sets")
+    return weights / weights.sum(-1, keepdim=True)
 
+
+def similarity_transform(source: torch.Tensor, target: torch.Tensor, method: str = "quaternion",
+                         weights: torch.Tensor | None = None) -> SimilarityTransform:
+    """Similarity transform aligning source (..., K, 3) onto target (..., K, 3) in (weighted) least squares.
+
+    ``weights`` (..., K): per-point weights of Umeyama's weighted problem; None weighs every point alike.
     A source whose points all coincide gets scale 0 (it is mapped onto the target's centroid).
     """
     if source.shape != target.shape or source.shape[-1] != 3:
         raise ValueError(f"source {tuple(source.shape)} and target {tuple(target.shape)} must both be (..., K, 3)")
-    mu_s, mu_t = source.mean(-2), target.mean(-2)
-    xs, yt = source - mu_s[..., None, :], target - mu_t[..., None, :]
-    var_s, var_t = xs.square().sum((-1, -2)), yt.square().sum((-1, -2))
-    rotation, trace = rotation_from_covariance(xs.transpose(-1, -2) @ yt, var_s, var_t, method)
+    if weights is None:
+        mu_s, mu_t = source.mean(-2), target.mean(-2)
+        xs, yt = source - mu_s[..., None, :], target - mu_t[..., None, :]
+        var_s, var_t = xs.square().sum((-1, -2)), yt.square().sum((-1, -2))
+        cov = xs.transpose(-1, -2) @ yt
+    else:
+        w = _point_weights(weights, source)[..., None]  # (..., K, 1)
+        mu_s, mu_t = (w * source).sum(-2), (w * target).sum(-2)
+        xs, yt = source - mu_s[..., None, :], target - mu_t[..., None, :]
+        var_s, var_t = (w * xs.square()).sum((-1, -2)), (w * yt.square()).sum((-1, -2))
+        cov = (w * xs).transpose(-1, -2) @ yt
+    rotation, trace = rotation_from_covariance(cov, var_s, var_t, method)
     scale = torch.where(var_s > 0, trace / var_s.clamp_min(torch.finfo(source.dtype).tiny), torch.zeros_like(trace))
     translation = mu_t - scale[..., None] * (mu_s[..., None, :] @ rotation.transpose(-1, -2))[..., 0, :]
     return SimilarityTransform(rotation, scale, translation)
@@ -211,6 +235,16 @@ def similarity_transform(source: torch.Tensor, target: torch.Tensor, method: str
 def similarity_align(source: torch.Tensor, target: torch.Tensor, method: str = "quaternion") -> torch.Tensor:
     """(..., K, 3) source aligned onto (..., K, 3) target by similarity Procrustes (per leading index)."""
     return similarity_transform(source, target, method).apply(source)
+
+
+def procrustes_error_mm(pred: torch.Tensor, truth: torch.Tensor, method: str = "quaternion") -> float:
+    """Mean point distance in mm after aligning every frame of pred (T, K, 3) onto truth (T, K, 3), metres.
+
+    The usual PA-MPJPE / PA-VPE: one similarity transform per frame. Solved in float64 whatever the input
+    dtype, so float32 joints lose nothing to the 3x3 solve.
+    """
+    pred, truth = pred.double(), truth.double()
+    return float(torch.linalg.norm(similarity_align(pred, truth, method) - truth, dim=-1).mean() * 1000.0)
 
 
 def check_sequence_pair(pred: torch.Tensor, gt: torch.Tensor) -> tuple[int, int, int]:

@@ -10,12 +10,14 @@ BLEU is sacrebleu's corpus BLEU (4-gram, brevity penalty, default ``exp`` smooth
 here. ROUGE-L is computed here on the same tokens: per sentence, the longest common subsequence gives
 precision ``P = LCS / |hyp|`` and recall ``R = LCS / |ref|``, ``F = (1 + b^2) P R / (R + b^2 P)`` (b = 1 by
 default: the F1 of Lin 2004), then the mean over sentences. Text is compared as given (no lower-casing).
+``translation_metrics_by_language`` scores a multilingual set one language at a time (Tab. 1's columns).
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
 
+import numpy as np
 import sacrebleu
 from sacrebleu.tokenizers.tokenizer_13a import Tokenizer13a
 
@@ -102,3 +104,25 @@ def translation_metrics(hyps: Sequence[str], refs: Sequence[str], language: str,
     if method not in TOKENIZERS:
         raise ValueError(f"unknown tokenizer {method!r}; use one of {TOKENIZERS}")
     return {"bleu4": bleu4(hyps, refs, method), "rouge_l": rouge_l(hyps, refs, method)}
+
+
+def translation_metrics_by_language(hyps: Sequence[str], refs: Sequence[str],
+                                    languages: Sequence[str]) -> dict[str, float]:
+    """:func:`translation_metrics` per language: ``translation/<language>/bleu4`` and ``.../rouge_l`` (languages
+    in first-seen order), and ``translation_bleu4``, the mean of the per-language BLEU-4 (each language weighs
+    alike, however many sentences it has; NaN when there is no sentence)."""
+    if not len(hyps) == len(refs) == len(languages):
+        raise ValueError(f"{len(hyps)} hypotheses, {len(refs)} references and {len(languages)} languages; give one "
+                         "reference and one language per hypothesis")
+    by_language: dict[str, tuple[list[str], list[str]]] = {}
+    for hyp, ref, language in zip(hyps, refs, languages):
+        pair = by_language.setdefault(language, ([], []))
+        pair[0].append(hyp)
+        pair[1].append(ref)
+    out, bleu = {}, []
+    for language, (lang_hyps, lang_refs) in by_language.items():
+        scores = translation_metrics(lang_hyps, lang_refs, language)
+        out.update({f"translation/{language}/{k}": v for k, v in scores.items()})
+        bleu.append(scores["bleu4"])
+    out["translation_bleu4"] = float(np.mean(bleu)) if bleu else float("nan")
+    return out

@@ -16,7 +16,7 @@ import torch
 
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d
-from m3t.fitting.evaluate import procrustes_error_mm
+from m3t.metrics.procrustes import procrustes_error_mm
 
 
 @torch.no_grad()

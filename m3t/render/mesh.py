@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel
-from m3t.fitting.evaluate import as_tensors
+from m3t.body.protocol import BodyModel, as_tensors
 
 
 def export_mesh(vertices: np.ndarray, faces: np.ndarray, path: str | Path) -> Path:

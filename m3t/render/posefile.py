@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel
-from m3t.fitting.evaluate import as_tensors
+from m3t.body.protocol import BodyModel, as_tensors
 
 COMPONENTS = {"pose": "POSE_LANDMARKS", "face": "FACE_LANDMARKS", "left_hand": "LEFT_HAND_LANDMARKS",
               "right_hand": "RIGHT_HAND_LANDMARKS"}
@@ -37,7 +36,11 @@ def export_pose(path: str | Path, body: BodyModel, params: dict[str, np.ndarray]
     """Write ``params`` as a ``.pose`` file (atomically), metres in the body model's frame."""
     from pose_format import Pose
     from pose_format.numpy.pose_body import NumPyPoseBody
-    from pose_format.pose_header import PoseHeader, PoseHeaderComponent, PoseHeaderDimensions
+    from pose_format.pose_header import (
+        PoseHeader,
+        PoseHeaderComponent,
+        PoseHeaderDimensions,
+    )
 
     points, valid, names = holistic_points(body, params, identity)
     parts = [n.split(":", 1)[0] for n in names]

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel, Correspondence
-from m3t.fitting.evaluate import as_tensors, metric_joints
+from m3t.body.metric_sets import metric_joints
+from m3t.body.protocol import BodyModel, Correspondence, as_tensors
 from m3t.render.skeleton import project_points, skeleton_edges
 from m3t.shards.schema import FittedClip
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from m3t.body.metric_sets import joints_for, metric_joints
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.camera import Camera, camera_tensors, project
-from m3t.fitting.evaluate import joints_for, metric_joints
 from m3t.shards.schema import FittedClip
 
 

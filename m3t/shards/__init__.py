@@ -4,7 +4,13 @@
 - :mod:`m3t.shards.io`: atomic :func:`write_shard`, :func:`read_shard`, :func:`shard_layout`.
 - :mod:`m3t.shards.dataset`: :class:`ShardDataset`, :class:`LengthBucketSampler`, :func:`collate_motion`.
 """
-from m3t.shards.dataset import LengthBucketSampler, MotionBatch, MotionItem, ShardDataset, collate_motion
+from m3t.shards.dataset import (
+    LengthBucketSampler,
+    MotionBatch,
+    MotionItem,
+    ShardDataset,
+    collate_motion,
+)
 from m3t.shards.io import ShardContents, read_shard, shard_layout, write_shard
 from m3t.shards.schema import SCHEMA_VERSION, FittedClip, ShardFormatError, arrow_schema
 

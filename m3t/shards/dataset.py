@@ -12,7 +12,6 @@ modality m, P identity dim.
 from __future__ import annotations
 
 import dataclasses
-
 import os
 from dataclasses import dataclass
 from pathlib import Path

@@ -250,3 +250,24 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
             )
         )
     return ShardContents(path=path, layout=layout, clips=tuple(clips), lengths=lengths)
+
+
+def read_split(shards_dirs: list[Path] | Path, split: str, modalities=None) -> list:
+    """The fitted clips of ``split`` across one or several corpora's shard folders (in the given order).
+
+    A missing shard names the stage to run; a clip id found in two corpora is refused (ids key every
+    downstream join)."""
+    dirs = [shards_dirs] if isinstance(shards_dirs, (str, Path)) else list(shards_dirs)
+    clips, seen = [], {}
+    for folder in dirs:
+        path = Path(folder) / f"{split}.parquet"
+        if not path.exists():
+            raise FileNotFoundError(f"shard {path} not found; run the fit-corpus stage for that corpus first "
+                                    f"(dvc repro, or python -m m3t.stages.fit_corpus --corpus {Path(folder).name})")
+        for clip in read_shard(path, modalities).clips:
+            if clip.clip.id in seen:
+                raise ValueError(f"clip id {clip.clip.id!r} is in both {seen[clip.clip.id]} and {path}; clip ids "
+                                 "must be unique across data.train_corpora")
+            seen[clip.clip.id] = path
+            clips.append(clip)
+    return clips

@@ -21,7 +21,13 @@ import pyarrow as pa
 
 from m3t.corpora.clip import Clip
 from m3t.shards.io import parquet_file, write_table_atomic
-from m3t.shards.schema import CLIP_COLUMNS, METADATA_COLUMNS, ShardFormatError, clip_from_columns, clip_record
+from m3t.shards.schema import (
+    CLIP_COLUMNS,
+    METADATA_COLUMNS,
+    ShardFormatError,
+    clip_from_columns,
+    clip_record,
+)
 
 TOKEN_SCHEMA_VERSION = 1
 TOKEN_INFO_KEY = b"m3t.tokens"

@@ -13,7 +13,7 @@ import torch
 
 from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
-from m3t.tokenizers.checkpoint import atomic_torch_save, read_checkpoint
+from m3t.training import read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-smlm-v1"
 
@@ -33,7 +33,7 @@ class LoadedSMLM:
 def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabulary, epoch: int, step: int,
               data_version: str, metrics: dict[str, float], train_config: dict | None = None) -> Path:
     """``train_config``: the training settings, kept so evaluations can say which variant they measure."""
-    return atomic_torch_save({
+    return save_checkpoint(path, {
         "format": FORMAT,
         "config": dataclasses.asdict(model.cfg),
         "dims": dataclasses.asdict(model.dims),
@@ -45,7 +45,7 @@ def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabular
         "data_version": data_version,
         "metrics": {k: float(v) for k, v in metrics.items()},
         "train_config": dict(train_config or {}),
-    }, path)
+    })
 
 
 def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:

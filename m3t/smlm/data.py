@@ -19,7 +19,12 @@ import numpy as np
 import torch
 
 from m3t.shards.tokens import TokenShard
-from m3t.smlm.vocab import MOTION_STREAMS, STREAM_PROMPT, SignVocabulary, VocabularyError
+from m3t.smlm.vocab import (
+    MOTION_STREAMS,
+    STREAM_PROMPT,
+    SignVocabulary,
+    VocabularyError,
+)
 
 IGNORE = -100
 

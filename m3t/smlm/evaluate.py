@@ -1,28 +1,23 @@
 """Evaluating the SMLM (M3T Tab. 1): production by DTW joint errors against the fitted motion, translation
 by BLEU-4 / ROUGE-L.
 
-Production: text -> greedy motion tokens -> frozen FSQ decoders -> parameters -> body model -> the metric
-point sets of :mod:`m3t.body.metric_sets` (12 upper-body points, 21 per hand, face vertices), compared with
-the clip's fitted motion by :mod:`m3t.metrics.motion` (SOKE's DTW-JPE / DTW-PA-JPE, face DTW-VPE). Both
-sides use the clip's signer identity, so the error is the motion's alone. Translation: the clip's
-ground-truth motion tokens -> text.
+Production: text -> greedy motion tokens -> frozen FSQ decoders -> parameters, scored against the clip's
+fitted motion by the one motion scorer (:class:`m3t.metrics.scorer.MotionScorer`: the metric point sets of
+:mod:`m3t.body.metric_sets`, SOKE's DTW-JPE / DTW-PA-JPE, face DTW-VPE). Translation: the clip's ground-truth
+motion tokens -> text, scored per language by :func:`m3t.metrics.text.translation_metrics_by_language`.
 
 Results are reported overall and per ``<corpus>/<language>`` group, the columns of Tab. 1.
 """
 from __future__ import annotations
 
-from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-import torch
 
-from m3t.body.metric_sets import metric_keypoints, metric_points
 from m3t.body.protocol import BodyModel
-from m3t.fitting.evaluate import as_tensors
-from m3t.metrics.motion import evaluate_pairs, summarise
-from m3t.metrics.text import translation_metrics
+from m3t.metrics.scorer import MotionPair, MotionScorer
+from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
 from m3t.smlm.data import Example
 from m3t.smlm.generate import GeneratedMotion, generate_motion, translate
@@ -60,13 +55,13 @@ class SMLMEvaluator:
         self.examples = list(examples)[: max_clips] if max_clips > 0 else list(examples)
         self.references = {e.clip_id: references[e.clip_id] for e in self.examples}
         self.batch_size, self.translation = batch_size, translation
-        self.sets = metric_keypoints(body)
-        self._truth = {cid: self.points(ref.params, ref.identity) for cid, ref in self.references.items()}
+        self.scorer = MotionScorer(body)
+        for cid, ref in self.references.items():  # posed once, reused at every evaluation
+            self.scorer.reference(cid, ref.params, ref.identity)
 
-    @torch.no_grad()
     def points(self, params: dict[str, np.ndarray], identity: np.ndarray) -> dict[str, np.ndarray]:
-        ident = torch.as_tensor(np.asarray(identity), dtype=torch.float32)
-        return {k: v.numpy().astype(np.float64) for k, v in metric_points(self.body, as_tensors(params), ident, self.sets).items()}
+        """{region: (T, K, 3) float64 metres} of a parameter sequence, as scored."""
+        return self.scorer.points(params, identity)
 
     def motion_params(self, generated: GeneratedMotion) -> dict[str, np.ndarray]:
         return decode_streams(self.tokenizers, generated.tokens)
@@ -89,47 +84,36 @@ class SMLMEvaluator:
         lost = [e.clip_id for e in self.examples if e.clip_id not in generated]
         if lost:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
-        pairs, rows = [], []
-        for example in self.examples:
-            g = generated[example.clip_id]
-            ref = self.references[example.clip_id]
-            row = {"clip_id": example.clip_id, "group": group_name(example, ref), "steps": len(g.tokens["body"]),
-                   "stopped": float(g.stopped)}
-            if row["steps"] == 0:  # EOS at the first step: nothing to compare, counted as a failed generation
-                rows.append(row)
-                continue
-            pairs.append((self.points(self.motion_params(g), ref.identity), self._truth[example.clip_id]))
-            rows.append(row)
-        scored = iter(evaluate_pairs(pairs))
-        for row in rows:
-            if row["steps"] > 0:
-                row.update(next(scored))
-        report = EvaluationReport(self._summary(rows), rows, generated)
+        steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
+        # EOS at the first step leaves nothing to decode: an empty prediction, counted as a failed generation
+        scores = self.scorer.score([
+            MotionPair(e.clip_id, group_name(e, self.references[e.clip_id]),
+                       self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {},
+                       self.references[e.clip_id].identity) for e in self.examples])
+        rows = [{"clip_id": c.clip_id, "group": c.group, "steps": steps[c.clip_id],
+                 "stopped": float(generated[c.clip_id].stopped), **c.metrics} for c in scores.per_clip]
+        summary = dict(scores.overall)
+        summary["stopped_rate"] = float(np.mean([r["stopped"] for r in rows])) if rows else 0.0
+        summary["empty_rate"] = scores.empty_rate
+        summary["mean_steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
+        if scores.overall:
+            summary[SELECTION_METRIC] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
+        else:  # nothing generated: the worst possible score, so such a checkpoint is never selected
+            summary[SELECTION_METRIC] = float("inf")
+        summary.update(scores.group_summary)
+        report = EvaluationReport(summary, rows, generated)
         if translations is not None:
+            lost = [e.clip_id for e in self.examples if e.clip_id not in translations]
+            if lost:
+                raise KeyError(f"no translation for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
             report.translations = translations
-            report.summary.update(self._text_scores(translations))
+            report.summary.update(translation_metrics_by_language(
+                [translations[e.clip_id] for e in self.examples], [e.text for e in self.examples],
+                [e.language for e in self.examples]))
         return report
 
     def __call__(self, model: SignMotionLM) -> dict[str, float]:
         return self.evaluate(model).summary
-
-    def _summary(self, rows: list[dict]) -> dict[str, float]:
-        scored = [r for r in rows if r["steps"] > 0]
-        metrics = {k: v for k, v in summarise([_metric_part(r) for r in scored]).items()} if scored else {}
-        out = dict(metrics)
-        out["stopped_rate"] = float(np.mean([r["stopped"] for r in rows])) if rows else 0.0
-        out["empty_rate"] = float(np.mean([r["steps"] == 0 for r in rows])) if rows else 0.0
-        out["mean_steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
-        if metrics:
-            out[SELECTION_METRIC] = 0.5 * (metrics["dtw_jpe_body_m"] + metrics["dtw_jpe_hand_m"])
-        else:  # nothing generated: the worst possible score, so such a checkpoint is never selected
-            out[SELECTION_METRIC] = float("inf")
-        groups = defaultdict(list)
-        for r in scored:
-            groups[r["group"]].append(_metric_part(r))
-        for group, parts in groups.items():
-            out.update({f"{group}/{k}": v for k, v in summarise(parts).items()})
-        return out
 
     def translate(self, model: SignMotionLM) -> dict[str, str]:
         """Ground-truth motion tokens of every evaluation clip -> text."""
@@ -140,24 +124,3 @@ class SMLMEvaluator:
                                                       [e.language for e in chunk])):
                 out[example.clip_id] = text
         return out
-
-    def _text_scores(self, translations: dict[str, str]) -> dict[str, float]:
-        by_language = defaultdict(lambda: ([], []))
-        lost = [e.clip_id for e in self.examples if e.clip_id not in translations]
-        if lost:
-            raise KeyError(f"no translation for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
-        for example in self.examples:
-            hyps, refs = by_language[example.language]
-            hyps.append(translations[example.clip_id])
-            refs.append(example.text)
-        out, bleu = {}, []
-        for language, (hyps, refs) in by_language.items():
-            scores = translation_metrics(hyps, refs, language)
-            out.update({f"translation/{language}/{k}": v for k, v in scores.items()})
-            bleu.append(scores["bleu4"])
-        out["translation_bleu4"] = float(np.mean(bleu))
-        return out
-
-
-def _metric_part(row: dict) -> dict[str, float]:
-    return {k: v for k, v in row.items() if k.startswith("dtw_")}

@@ -15,7 +15,13 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from m3t.smlm.data import pad_sequences, motion_global, motion_source, prompt_step, text_source
+from m3t.smlm.data import (
+    motion_global,
+    motion_source,
+    pad_sequences,
+    prompt_step,
+    text_source,
+)
 from m3t.smlm.model import SignMotionLM
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary, VocabularyError
 

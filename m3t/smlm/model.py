@@ -35,8 +35,8 @@ class SMLMConfig:
     """Model and vocabulary sizes (params section ``smlm``). Paper: mbart-large-cc25, 12 + 12 layers, 1024."""
 
     d_model: int = 128
-    encoder_layers: int = 2
-    decoder_layers: int = 2
+    encoder_layers: int = 3
+    decoder_layers: int = 3
     attention_heads: int = 4
     ffn_dim: int = 512
     dropout: float = 0.1

@@ -13,7 +13,6 @@ Axis legend: B batch, U motion steps, S streams, K text tokens.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal, Sequence
@@ -24,31 +23,35 @@ import torch.nn.functional as F
 
 from m3t.runtime import DistributedContext, autocast, choose_device
 from m3t.smlm.checkpoint import save_smlm
-from m3t.smlm.data import IGNORE, Example, ProductionBatch, TranslationBatch, production_batch, translation_batch
+from m3t.smlm.data import (
+    IGNORE,
+    Example,
+    ProductionBatch,
+    TranslationBatch,
+    production_batch,
+    translation_batch,
+)
 from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
-from m3t.tokenizers.train import lr_factor
+from m3t.training import EpochTail, Selection, optimizer_step, warmup_cosine
 
 
 @dataclass(frozen=True)
 class SMLMTrainConfig:
-    """``smlm_train`` section (paper: AdamW, cosine 2e-4 -> 1e-6, 200 epochs, batch 32)."""
+    """``smlm_train`` section; defaults = params.yaml (the paper's AdamW, cosine 2e-4 -> 1e-6, 200 epochs,
+    batch 32 are in ``presets/paper.yaml``)."""
 
-    tokens_dir: str = "data/tokens/synthetic"
-    shards_dir: str = "data/shards/synthetic"  # fitted motion: the reference of the DTW evaluation
-    tokenizers_dir: str = "models/tokenizers"
-    out_dir: str = "models/smlm"
     epochs: int = 200
-    batch_size: int = 32
-    lr: float = 2e-4
+    batch_size: int = 8
+    lr: float = 5e-4
     min_lr: float = 1e-6
-    warmup_steps: int = 0
+    warmup_steps: int = 50
     weight_decay: float = 0.01
     grad_clip: float = 1.0
     translation_objective: bool = True
     translation_prob: float = 0.5
     label_smoothing: float = 0.0
-    eval_every: int = 10
+    eval_every: int = 20
     eval_max_clips: int = 64
     seed: int = 0
     device: str = "auto"
@@ -94,21 +97,9 @@ def train_step(model: SignMotionLM, batch: ProductionBatch | TranslationBatch, o
     device = next(model.parameters()).device
     with autocast(device, precision):
         loss = task_loss(model, _to(batch, device), smoothing)
-    optim.zero_grad(set_to_none=True)
-    loss.backward()
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        # gradients averaged here rather than by a DDP wrapper: the two tasks use different heads, and the
-        # task methods are not the module's forward() that DDP hooks
-        world = torch.distributed.get_world_size()
-        for p in model.parameters():
-            if p.grad is None:  # a head the task did not use: every rank reduces the same list
-                p.grad = torch.zeros_like(p)
-            torch.distributed.all_reduce(p.grad)
-            p.grad /= world
-    if grad_clip > 0:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
-    optim.step()
-    scheduler.step()
+    # gradients averaged across ranks by the step rather than by a DDP wrapper: the two tasks use different
+    # heads, and the task methods are not the module's forward() that DDP hooks
+    optimizer_step(loss, model, optim, scheduler, grad_clip, average_grads=True)
     task = "production" if isinstance(batch, ProductionBatch) else "translation"
     return {f"{task}_loss": loss.item()}
 
@@ -158,35 +149,25 @@ def train_smlm(
     if per_epoch == 0:
         raise ValueError(f"{len(train)} examples make no full batch for {dist_ctx.world_size} ranks; lower batch_size")
     optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    total, floor = cfg.epochs * per_epoch, cfg.min_lr / cfg.lr
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, cfg.warmup_steps, total, floor))
-    result, step, best_score = SMLMTrainResult(Path(best_path)), 0, math.inf
-    bar = tqdm(range(cfg.epochs), desc="smlm", unit="epoch", disable=not progress or not dist_ctx.is_main)
+    scheduler = warmup_cosine(optim, cfg.epochs, per_epoch, cfg.warmup_steps, "steps", cfg.min_lr)
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+    tail = EpochTail(
+        cfg.epochs, cfg.eval_every,
+        # without an evaluator the last epoch is kept
+        Selection("epoch", "max") if evaluate is None else Selection("val_dtw_jpe_mean_m"), optim, scheduler,
+        save=lambda path, epoch, step, record, _: save_smlm(path, model, vocab, epoch, step, data_version, record,
+                                                            settings),
+        best_path=best_path, evaluate=None if evaluate is None else lambda: evaluate(model),
+        is_main=dist_ctx.is_main, on_epoch=on_epoch)
+    bar = tqdm(tail.remaining(), desc="smlm", unit="epoch", disable=not progress or not dist_ctx.is_main)
     for epoch in bar:
         model.train()
-        sums: dict[str, list[float]] = {}
+        losses: dict[str, list[float]] = {}
         for batch in epoch_batches(train, vocab, cfg, epoch, dist_ctx.rank, dist_ctx.world_size):
             for k, v in train_step(model, batch, optim, scheduler, cfg.precision, cfg.grad_clip,
                                    cfg.label_smoothing).items():
-                sums.setdefault(k, []).append(v)
-            step += 1
-        record = {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}
-        record.update(epoch=epoch + 1, lr=optim.param_groups[0]["lr"])
-        if not dist_ctx.is_main:
-            continue
-        evaluated = evaluate is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs)
-        if evaluated:
-            record.update({f"val_{k}": v for k, v in evaluate(model).items()})
-            score = record["val_dtw_jpe_mean_m"]
-        else:  # without an evaluator the last epoch is kept
-            score = -epoch if evaluate is None else math.inf
-        if score < best_score:
-            best_score, result.best = score, dict(record)
-            save_smlm(result.best_path, model, vocab, epoch + 1, step, data_version, record,
-                      {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))})
-        result.history.append(record)
-        bar.set_postfix({k.removeprefix("train_"): f"{v:.3g}" for k, v in record.items() if k.startswith("train_")})
-        if on_epoch is not None:
-            on_epoch(record, epoch + 1)
-    result.model = model
-    return result
+                losses.setdefault(k, []).append(v)
+            tail.step += 1
+        # np.mean per key: the two tasks' losses come from different numbers of steps
+        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in losses.items()}, bar)
+    return SMLMTrainResult(Path(best_path), tail.history, tail.best, model)

@@ -25,8 +25,10 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-# Head order (the paper's 5 heads) and the short names used in token strings.
-MOTION_STREAMS = ("body", "left_hand", "right_hand", "face")
+from m3t.body.protocol import STREAM_ORDER
+
+# Head order (the paper's 5 heads: text, then the project's one stream order) and the short names of token strings.
+MOTION_STREAMS = STREAM_ORDER
 STREAM_TAGS = {"body": "b", "left_hand": "lh", "right_hand": "rh", "face": "f"}
 PROMPT_MODALITIES = ("TXT", "B", "LH", "RH", "F")
 STREAM_PROMPT = {"body": "B", "left_hand": "LH", "right_hand": "RH", "face": "F"}

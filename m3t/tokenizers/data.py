@@ -17,7 +17,7 @@ from typing import Iterator, Sequence
 import numpy as np
 import torch
 
-from m3t.body.protocol import ModalityLayout
+from m3t.body.protocol import STREAM_ORDER, ModalityLayout
 from m3t.body.rotations import mirror_rotations
 
 
@@ -37,7 +37,9 @@ GROUPS: dict[str, tuple[Stream, ...]] = {
 }
 """Tokenizer group -> the token streams it serves (the token shards have one column per stream)."""
 
-STREAMS: tuple[Stream, ...] = tuple(s for streams in GROUPS.values() for s in streams)
+STREAMS: tuple[Stream, ...] = tuple(sorted((s for streams in GROUPS.values() for s in streams),
+                                           key=lambda s: STREAM_ORDER.index(s.name)))
+"""Every token stream, in the project's one stream order (:data:`m3t.body.protocol.STREAM_ORDER`)."""
 
 
 def group_of(stream_name: str) -> str:

@@ -16,11 +16,21 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel
-from m3t.fitting.evaluate import as_tensors
-from m3t.metrics.vertices import region_keypoints, region_vertices, stream_vertex_region, vertex_errors_mm
+from m3t.body.protocol import BodyModel, as_tensors
+from m3t.metrics.vertices import (
+    region_keypoints,
+    region_vertices,
+    stream_vertex_region,
+    vertex_errors_mm,
+)
 from m3t.shards.schema import FittedClip
-from m3t.tokenizers.data import GROUPS, STREAMS, from_canonical, pad_to_multiple, to_canonical
+from m3t.tokenizers.data import (
+    GROUPS,
+    STREAMS,
+    from_canonical,
+    pad_to_multiple,
+    to_canonical,
+)
 from m3t.tokenizers.vae import MotionTokenizer
 
 

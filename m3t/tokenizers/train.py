@@ -11,7 +11,6 @@ Axis legend: B batch, W window frames, D group dim.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal, Sequence
@@ -25,7 +24,13 @@ from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
 from m3t.tokenizers.data import WindowSampler, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
 from m3t.tokenizers.vae import MotionTokenizer, VAEConfig
-
+from m3t.training import (
+    EpochTail,
+    Selection,
+    lr_factor,  # noqa: F401 - re-exported, older callers import it from here
+    optimizer_step,
+    warmup_cosine,
+)
 
 TRAIN_VERSION = "tok-v2"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -35,14 +40,14 @@ class TokenizerConfig:
     """``tokenizer`` section: the architecture shared by the three groups (App. 0.D.1) and the quantiser."""
 
     quantizer: Literal["fsq", "vq"] = "fsq"
-    width: int = 1024
+    width: int = 128
     depth: int = 6
     down_stages: int = 2
     dilation_growth: int = 3
     levels_body: tuple[int, ...] = (5, 5, 4)
     levels_hand: tuple[int, ...] = (6, 6, 5)
     levels_face: tuple[int, ...] = (6, 6, 6)
-    vq_code_dim: int = 512
+    vq_code_dim: int = 64
     vq_decay: float = 0.99
     vq_beta: float = 0.02
 
@@ -55,21 +60,20 @@ class TokenizerConfig:
 
 @dataclass(frozen=True)
 class TokenizerTrainConfig:
-    """``tokenizer_train`` section (paper: Adam 1e-4, 100 epochs, batch 8, 25 warm-up epochs, floor 1e-6)."""
+    """``tokenizer_train`` section; defaults = params.yaml (the paper's Adam 1e-4, 100 epochs, batch 8, 25 warm-up
+    epochs, floor 1e-6 are in ``presets/paper.yaml``)."""
 
-    shards_dir: str = "data/shards/synthetic"
-    out_dir: str = "models/tokenizers"
     cache_dir: str = ".cache/tokenizers"
     groups: tuple[str, ...] = ("body", "hand", "face")
     extra_face_shards: tuple[str, ...] = ()  # face-only shards (e.g. MEAD) added to the face training set
-    epochs: int = 100
-    warmup_epochs: int = 25
-    lr: float = 1e-4
+    epochs: int = 30
+    warmup_epochs: int = 5
+    lr: float = 1e-3
     min_lr: float = 1e-6
-    batch_size: int = 8
+    batch_size: int = 16
     window: int = 64
-    windows_per_clip: int = 1
-    eval_every: int = 1
+    windows_per_clip: int = 4
+    eval_every: int = 5
     val_max_frames: int = 2000
     seed: int = 0
     device: str = "auto"
@@ -89,14 +93,6 @@ class TrainResult:
     model: MotionTokenizer | None = None  # the model after the last epoch (not the selected one)
 
 
-def lr_factor(step: int, warmup_steps: int, total_steps: int, floor: float) -> float:
-    """Multiplier of the base LR: linear warm-up to 1, then cosine to ``floor`` (= min_lr / lr)."""
-    if step < warmup_steps:
-        return (step + 1) / warmup_steps
-    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
 def masked_mse(recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean squared error over real frames only. recon/target (B, W, D), mask (B, W) bool."""
     weight = mask.unsqueeze(-1).to(recon.dtype)
@@ -113,10 +109,7 @@ def train_step(model: torch.nn.Module, batch: tuple[torch.Tensor, torch.Tensor],
     std = getattr(model, "module", model).std
     recon = masked_mse(out.recon.float() / std, x / std, mask)
     loss = recon + out.quant_loss.float()
-    optim.zero_grad(set_to_none=True)
-    loss.backward()
-    optim.step()
-    scheduler.step()
+    optimizer_step(loss, model, optim, scheduler)  # a DDP-wrapped model averages its gradients itself
     return {"loss": loss.item(), "recon_mse": recon.item(), "perplexity": out.perplexity.item()}
 
 
@@ -162,52 +155,32 @@ def train_tokenizer(
                             dist_ctx.rank, dist_ctx.world_size)
     steps_per_epoch = len(sampler)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    total, warm, floor = cfg.epochs * steps_per_epoch, cfg.warmup_epochs * steps_per_epoch, cfg.min_lr / cfg.lr
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, warm, total, floor))
-    result = TrainResult(group, best_path, last_path)
-    start_epoch, step, best_score = 0, 0, math.inf
+    scheduler = warmup_cosine(optim, cfg.epochs, steps_per_epoch, cfg.warmup_epochs, "epochs", cfg.min_lr)
+    tail = EpochTail(
+        cfg.epochs, cfg.eval_every,
+        # validation vertex error on evaluation epochs; the training loss when there is no probe
+        Selection("train_recon_mse" if probe is None else "val_vpe_mm"), optim, scheduler,
+        save=lambda path, epoch, step, record, state: save_tokenizer(path, model, group, epoch, step, data_version,
+                                                                     record, state),
+        best_path=best_path, last_path=last_path, evaluate=None if probe is None else lambda: probe.measure(model),
+        is_main=dist_ctx.is_main, on_epoch=on_epoch)
     if last_path.exists():  # resume: same config + same data -> continue the same curve
         loaded = load_tokenizer(last_path, device)
         if loaded.train_state is None:
             raise ValueError(f"{last_path} has no training state; delete it to start this tokenizer afresh")
-        state = loaded.train_state
         model.load_state_dict(loaded.model.state_dict())
-        optim.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        torch.set_rng_state(state["rng"])
-        start_epoch, step, best_score = state["epoch"], state["step"], state["best_score"]
-        result.history, result.best, result.resumed_from_epoch = list(state["history"]), dict(state["best"]), start_epoch
+        tail.resume(loaded.train_state)
+    resumed_from_epoch = tail.epoch
     net = DistributedDataParallel(model) if dist_ctx.world_size > 1 else model
-    end_epoch = cfg.epochs if stop_after_epochs is None else min(cfg.epochs, start_epoch + stop_after_epochs)
-    bar = tqdm(range(start_epoch, end_epoch), desc=f"tokenizer:{group}", unit="epoch",
+    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"tokenizer:{group}", unit="epoch",
                disable=not progress or not dist_ctx.is_main)
     for epoch in bar:
         net.train()
         sums: dict[str, float] = {}
         for batch in sampler.epoch(epoch):
             stats = train_step(net, tuple(t.to(device) for t in batch), optim, scheduler, cfg.precision)
-            step += 1
+            tail.step += 1
             for k, v in stats.items():
                 sums[k] = sums.get(k, 0.0) + v
-        record = {f"train_{k}": v / steps_per_epoch for k, v in sums.items()}
-        record.update(epoch=epoch + 1, lr=optim.param_groups[0]["lr"])
-        if not dist_ctx.is_main:
-            continue
-        evaluated = probe is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs)
-        if evaluated:
-            record.update({f"val_{k}": v for k, v in probe.measure(model).items()})
-        # selection: validation vertex error on evaluation epochs; the training loss when there is no probe
-        score = record["val_vpe_mm"] if evaluated else (record["train_recon_mse"] if probe is None else math.inf)
-        if score < best_score:
-            best_score, result.best = score, dict(record)
-            save_tokenizer(best_path, model, group, epoch + 1, step, data_version, record)
-        result.history.append(record)
-        train_state = {"optimizer": optim.state_dict(), "scheduler": scheduler.state_dict(),
-                       "rng": torch.get_rng_state(), "epoch": epoch + 1, "step": step, "best_score": best_score,
-                       "history": result.history, "best": result.best}
-        save_tokenizer(last_path, model, group, epoch + 1, step, data_version, record, train_state)
-        bar.set_postfix(loss=f"{record['train_loss']:.4g}", vpe=f"{record.get('val_vpe_mm', float('nan')):.2f}")
-        if on_epoch is not None:
-            on_epoch(record, epoch + 1)
-    result.model = model
-    return result
+        tail.end_epoch(epoch, {f"train_{k}": v / steps_per_epoch for k, v in sums.items()}, bar)
+    return TrainResult(group, best_path, last_path, tail.history, tail.best, resumed_from_epoch, model)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from m3t.trackers.config import MediaPipeConfig
 from m3t.trackers.media import open_media
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 
@@ -31,16 +32,6 @@ INSTALL_HINT = "run `bash .ci/install-tracking` (mediapipe 0.10.14 without jax a
 NUM_LANDMARKS = sum(MEDIAPIPE_HOLISTIC_PARTS.values())
 LANDMARK_SET = "mediapipe_holistic"
 TRACKER_NAME = "mediapipe_holistic"
-
-
-@dataclass(frozen=True)
-class MediaPipeConfig:
-    model_complexity: int = 1  # the only pose model shipped in the wheel: 0 and 2 need a download (offline: fail)
-    min_detection_confidence: float = 0.5
-    min_tracking_confidence: float = 0.5
-    refine_face_landmarks: bool = False  # iris points; the track keeps the 468 mesh points either way
-    static_image_mode: bool = False  # False: track across frames (faster, steadier); True: detect every frame
-    smooth_landmarks: bool = True  # MediaPipe's own temporal filter of the pose landmarks (video mode only)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,6 @@ Axis legend: T frames, K landmarks.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
 
 import numpy as np
 import roma
@@ -23,22 +22,8 @@ import torch
 from m3t.body.protocol import BodyModel, ModalityLayout, Params
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import Camera, camera_tensors, project
+from m3t.trackers.config import SimulatedTrackerConfig
 from m3t.trackers.track import Track, landmark_slices
-
-
-@dataclass(frozen=True)
-class SimulatedTrackerConfig:
-    seed: int = 0
-    noise_px_pose: float = 2.0
-    noise_px_hand: float = 1.5
-    noise_px_face: float = 0.8
-    hand_dropout_prob: float = 0.3  # chance per clip and hand of one missing span
-    hand_dropout_max_frac: float = 0.3  # longest missing span, as a fraction of the clip
-    occlusion_prob: float = 0.02  # chance per frame that a random 10% of points are occluded
-    intrinsics_known: bool = True  # write the camera intrinsics into the track (a calibrated camera)
-    init_noise_deg_body: float = 6.0  # per-frame rotation noise of the 3D initialisation, body joints
-    init_noise_deg_hand: float = 10.0  # ... finger joints (hand estimators are less precise)
-    init_noise_scalar: float = 0.08  # std of the noise on scalar streams (face)
 
 
 def clip_rng(seed: int, clip_id: str) -> np.random.Generator:

@@ -21,17 +21,17 @@ from pathlib import Path
 
 import yaml
 
+from m3t.atomic import write_text
 from m3t.experiment import disable_telemetry
 
 
 def _cmd_params(args: argparse.Namespace) -> int:
-    from m3t.config import load_params, to_dict
+    from m3t.config import load_params
+    from m3t.experiment import to_dict
 
     text = yaml.safe_dump(to_dict(load_params(args.params, preset=args.preset)), sort_keys=False)
     if args.write:
-        tmp = Path(args.params).with_suffix(".yaml.tmp")
-        tmp.write_text(f"# preset: {args.preset}\n" + text)
-        os.replace(tmp, args.params)
+        write_text(args.params, f"# preset: {args.preset}\n" + text)
         print(f"wrote preset {args.preset!r} to {args.params}")
     else:
         print(text)

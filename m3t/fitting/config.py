@@ -1,0 +1,67 @@
+"""Configs of the fitting component (params.yaml ``fitting``, ``fusion``, ``fit_corpus``) and the job of one
+corpus run. Configs only: the engine (:mod:`m3t.fitting.corpus`) and the refinement (:mod:`m3t.fitting.fit`)
+import them, so reading params.yaml never imports the fitting code.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from typing import Literal
+
+from m3t.body.config import BodyConfig
+from m3t.corpora.base import CORPORA, CorpusSource
+from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
+
+
+@dataclass(frozen=True)
+class FittingConfig:
+    """params.yaml ``fitting``: M3T App. C, Eq. A.3, L = w_kp L_kp + w_acc L_acc + w_reg L_reg."""
+
+    iterations: int = 200
+    camera_iterations: int = 100
+    lr: float = 0.02
+    w_kp: float = 1.0
+    w_acc: float = 0.5
+    w_reg: float = 0.01
+    fit_identity: bool = True
+    focal_guess: float = 1.2  # focal length in units of max(width, height) when the track has no intrinsics
+    camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
+    device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    use_external: bool = True  # fuse the NLF / WiLoR / Pixel3DMM outputs found beside a clip's media
+    min_confidence: float = 0.3
+    max_gap: int = 12  # frames; longer gaps hold the nearest covered value instead of interpolating
+
+
+@dataclass(frozen=True)
+class FitCorpusConfig:
+    """params.yaml ``fit_corpus``: how a corpus run goes (where each corpus lives: ``corpora.<name>``)."""
+
+    default_corpus: Literal[CORPORA] = "synthetic"  # the corpus of `--corpus` when none is named
+    cache_dir: str = ".cache/fit"  # tracks and per-clip fits, content-addressed (shared by every corpus)
+    workers: int = 2  # processes of the default executor; 1 = in this process
+    max_clips: int = 0  # 0 = every clip
+    render_clips: int = 2  # fitted clips pictured in the MLflow run
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """Everything a worker needs for one corpus run: configs only (picklable), no built model."""
+
+    corpus: str
+    source: CorpusSource
+    shards_dir: str
+    run: FitCorpusConfig
+    body: BodyConfig
+    fitting: FittingConfig
+    tracker: SimulatedTrackerConfig = field(default_factory=SimulatedTrackerConfig)
+    mediapipe: MediaPipeConfig = field(default_factory=MediaPipeConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+
+    def key(self) -> str:
+        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:16]

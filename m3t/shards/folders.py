@@ -1,0 +1,63 @@
+"""Where every corpus' shards, tokens and the models trained on them live, derived from one params.yaml
+section, ``data``.
+
+``data.train_corpora`` names the corpora that the downstream stages train on **jointly** (one tokenizer
+set and one SMLM on all of them, checkpoints selected on all their dev splits, as M3T trains on How2Sign +
+CSL-Daily + Phoenix14T); switching or adding a training corpus is that one key (plus, for DVC, the
+matching dependency lines in dvc.yaml, which ``tests/test_architecture.py`` checks). Each corpus keeps its
+own folders (``<shards_root>/<corpus>``, ``<tokens_root>/<corpus>``); models and evaluation outputs have
+one folder each.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """params.yaml ``data``."""
+
+    train_corpora: tuple[str, ...] = ("synthetic",)
+    shards_root: str = "data/shards"  # fit-corpus writes <shards_root>/<corpus>/{train,dev,test}.parquet
+    tokens_root: str = "data/tokens"  # tokenize writes <tokens_root>/<corpus>/{train,dev,test}.parquet
+    models_dir: str = "models"  # <models_dir>/tokenizers, <models_dir>/smlm
+    generated_dir: str = "data/generated"  # generate-smlm writes <generated_dir>/<corpora joined by '+'>
+    metrics_dir: str = "metrics"  # evaluate-* write <metrics_dir>/<model>
+
+    def __post_init__(self) -> None:
+        if not self.train_corpora:
+            raise ValueError("train_corpora is empty; name at least one corpus of `corpora` (e.g. [synthetic])")
+        if len(set(self.train_corpora)) != len(self.train_corpora):
+            raise ValueError(f"train_corpora {list(self.train_corpora)} names a corpus twice")
+
+    def shards_dir(self, corpus: str) -> Path:
+        return Path(self.shards_root) / corpus
+
+    def tokens_dir(self, corpus: str) -> Path:
+        return Path(self.tokens_root) / corpus
+
+    @property
+    def shards_dirs(self) -> list[Path]:
+        """The training corpora's shard folders, in ``train_corpora`` order."""
+        return [self.shards_dir(c) for c in self.train_corpora]
+
+    @property
+    def tokens_dirs(self) -> list[Path]:
+        return [self.tokens_dir(c) for c in self.train_corpora]
+
+    @property
+    def tokenizers_dir(self) -> Path:
+        return Path(self.models_dir) / "tokenizers"
+
+    @property
+    def smlm_dir(self) -> Path:
+        return Path(self.models_dir) / "smlm"
+
+    @property
+    def generated(self) -> Path:
+        return Path(self.generated_dir) / "+".join(self.train_corpora)
+
+    def metrics(self, model: str) -> Path:
+        return Path(self.metrics_dir) / model
+

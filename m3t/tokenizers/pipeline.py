@@ -1,0 +1,164 @@
+"""The train-tokenizers run: fitted shards of ``data.train_corpora`` -> one FSQ-VAE (or VQ-VAE baseline) per
+modality group -> checkpoints, codebook statistics, token histograms and reconstruction GIFs, logged to MLflow.
+
+For each group of ``tokenizer_train.groups`` (``body``, ``hand``, ``face``): train on the train splits of all
+training corpora (+ face-only shards for ``face``), select by validation vertex error on their dev splits,
+then tokenise every split with the selected checkpoint to measure codebook utilisation / token-count SD and
+test-split VPE / PA-VPE (the Tab. 3 columns). Writes ``<models>/tokenizers/<group>.pt``, ``metrics.json``,
+``plots/`` and ``rejected.jsonl`` (clips that could not be used, with reasons).
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from m3t.atomic import copy_file, write_json, write_jsonl
+from m3t.body.factory import BodyConfig
+from m3t.body.protocol import BodyModel
+from m3t.corpora.base import SPLITS
+from m3t.experiment import ExperimentConfig, section_params
+from m3t.metrics.codebook import codebook_stats, plot_token_histogram, token_counts
+from m3t.runtime import DistributedContext
+from m3t.shards.folders import DataConfig
+from m3t.shards.io import read_shard, read_split
+from m3t.shards.schema import FittedClip
+from m3t.tokenizers.checkpoint import load_tokenizer
+from m3t.tokenizers.data import (
+    GROUPS,
+    check_layout,
+    clip_sequences,
+    from_canonical,
+    to_canonical,
+)
+from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
+from m3t.tokenizers.train import (
+    TokenizerConfig,
+    TokenizerTrainConfig,
+    TrainResult,
+    train_tokenizer,
+)
+
+
+def data_version(paths: list[Path]) -> str:
+    """Digest of the files a model is trained on (part of the resume key and the checkpoint)."""
+    h = hashlib.sha256()
+    for path in paths:
+        h.update(Path(path).name.encode())
+        h.update(hashlib.sha256(Path(path).read_bytes()).digest())
+    return h.hexdigest()[:16]
+
+
+def usable_sequences(group: str, clips: list[FittedClip], rejected: list[dict]) -> list[np.ndarray]:
+    """Training sequences of ``clips``; a clip that cannot be used is recorded in ``rejected``, not raised."""
+    out = []
+    for clip in clips:
+        try:
+            out.extend(clip_sequences(clip.params, group, clip.clip.id))
+        except (ValueError, KeyError) as exc:
+            rejected.append({"clip_id": clip.clip.id, "group": group, "reason": f"{type(exc).__name__}: {exc}"})
+    return out
+
+
+def face_only_clips(paths: tuple[str, ...]) -> list[FittedClip]:
+    clips = []
+    for path in paths:
+        clips.extend(read_shard(path, ["face"]).clips)
+    return clips
+
+
+def group_report(group: str, checkpoint: Path, splits: dict[str, list[FittedClip]], body: BodyModel,
+                 plots_dir: Path, max_test_frames: int) -> dict[str, float]:
+    """Codebook statistics over every split and test-split vertex errors of the selected checkpoint."""
+    from m3t.render.reconstruction import render_reconstruction
+
+    model = load_tokenizer(checkpoint).model
+    indices = [encode_clip(model, to_canonical(np.asarray(c.params[s.modality]), s))
+               for clips in splits.values() for c in clips for s in GROUPS[group]]
+    counts = token_counts(indices, model.codebook_size)
+    stats = codebook_stats(counts)
+    plot_token_histogram(counts, f"{group} ({model.cfg.quantizer}, {model.codebook_size} codes)",
+                         plots_dir / f"tokens_{group}.png")
+    test = ReconstructionProbe(body, group, splits["test"], max_frames=max_test_frames).measure(model)
+    report = {**stats, **{f"test_{k}": v for k, v in test.items()}, "codebook_size": float(model.codebook_size)}
+    if splits["test"]:
+        clip = splits["test"][0]
+        recon = {s.modality: from_canonical(reconstruct_clip(model, to_canonical(np.asarray(clip.params[s.modality]), s)),
+                                            s).numpy() for s in GROUPS[group]}
+        render_reconstruction(body, clip, recon, plots_dir / f"reconstruction_{group}.gif",
+                              title=f"{clip.clip.id}: {group} tokens ({model.cfg.quantizer})")
+    return report
+
+
+def run_train_tokenizers(
+    tok_cfg: TokenizerConfig,
+    cfg: TokenizerTrainConfig,
+    body: BodyModel,
+    data: DataConfig,
+    on_epoch: Callable[[str, dict[str, float], int], None] | None = None,
+    stop_after_epochs: int | None = None,
+    dist_ctx: DistributedContext | None = None,
+    progress: bool = True,
+) -> dict[str, dict[str, float]]:
+    """Train every configured group; returns (and, on rank 0, writes) ``metrics.json``'s content."""
+    dist_ctx = dist_ctx or DistributedContext()
+    splits = {split: read_split(data.shards_dirs, split) for split in SPLITS}
+    if not splits["train"]:
+        raise ValueError(f"the train shards of {', '.join(data.train_corpora)} hold no clips; the tokenizers "
+                         "need training data")
+    layout = read_shard(data.shards_dirs[0] / "train.parquet", []).layout
+    version = data_version([d / f"{s}.parquet" for d in data.shards_dirs for s in ("train", "dev")]
+                           + list(map(Path, cfg.extra_face_shards)))
+    out_dir = data.tokenizers_dir
+    plots = out_dir / "plots"
+    rejected: list[dict] = []
+    results: dict[str, TrainResult] = {}
+    report: dict[str, dict[str, float]] = {}
+    for group in cfg.groups:
+        input_dim = check_layout(layout, group)
+        train_clips = splits["train"] + (face_only_clips(cfg.extra_face_shards) if group == "face" else [])
+        sequences = usable_sequences(group, train_clips, rejected)
+        rejected_ids = {r["clip_id"] for r in rejected}
+        usable = {s: [c for c in clips if c.clip.id not in rejected_ids] for s, clips in splits.items()}
+        dev = usable["dev"]
+        probe = ReconstructionProbe(body, group, dev or splits["train"], cfg.val_max_frames) if dist_ctx.is_main else None
+        callback = (lambda record, epoch, g=group: on_epoch(g, record, epoch)) if on_epoch else None
+        results[group] = train_tokenizer(group, tok_cfg.vae_config(group, input_dim), cfg, sequences, probe, version,
+                                         callback, stop_after_epochs, dist_ctx, progress)
+        if dist_ctx.is_main:
+            copy_file(results[group].best_path, out_dir / f"{group}.pt")
+            report[group] = {**group_report(group, out_dir / f"{group}.pt", usable, body, plots, cfg.val_max_frames),
+                             "best_epoch": float(results[group].best.get("epoch", 0)),
+                             **{f"best_{k}": v for k, v in results[group].best.items() if k.startswith("val_")}}
+    if dist_ctx.is_main:
+        write_json(out_dir / "metrics.json", report)
+        write_jsonl(out_dir / "rejected.jsonl", rejected)
+    return report
+
+
+def train_and_log(tok_cfg: TokenizerConfig, cfg: TokenizerTrainConfig, body_cfg: BodyConfig, data: DataConfig,
+                  experiment: ExperimentConfig, progress: bool = True) -> dict[str, dict[str, float]]:
+    """Train the tokenizers (rank 0 logs params, per-epoch curves, final metrics and plots to MLflow)."""
+    from m3t.body.factory import load_body_model
+    from m3t.experiment import start_run
+    from m3t.runtime import distributed_context
+
+    dist_ctx = distributed_context(cfg.device)
+    body = load_body_model(body_cfg)
+    if not dist_ctx.is_main:
+        return run_train_tokenizers(tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False)
+    tags = {"quantizer": tok_cfg.quantizer, "width": str(tok_cfg.width), "batch_size": str(cfg.batch_size)}
+    with start_run(experiment, "train-tokenizers", tags=tags) as run:
+        run.log_params(section_params(body=body_cfg, tokenizer=tok_cfg, tokenizer_train=cfg, data=data))
+        report = run_train_tokenizers(
+            tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=progress,
+            on_epoch=lambda group, record, epoch: run.log_metrics({f"{group}/{k}": v for k, v in record.items()}, step=epoch))
+        run.log_metrics({f"{group}/{k}": v for group, values in report.items() for k, v in values.items()})
+        out_dir = data.tokenizers_dir
+        run.log_artifact(out_dir / "metrics.json")
+        run.log_artifact(out_dir / "rejected.jsonl")
+        for plot in sorted((out_dir / "plots").glob("*")):
+            run.log_artifact(plot, "plots")
+    return report

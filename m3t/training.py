@@ -1,0 +1,215 @@
+"""Training mechanics shared by every trainer (tokenizers, SMLM): the warm-up + cosine LR schedule, one
+optimiser step, the self-describing checkpoint file, and the epoch tail: evaluation when due, selection of
+the ``best`` checkpoint by a named metric, the resumable ``last`` checkpoint (optimizer, scheduler, RNG),
+and rank-0-only logging. A trainer keeps only what is its own: the model, its batches and its loss.
+
+A trainer's loop, with ``tail = EpochTail(...)`` (and ``tail.resume(state)`` when a ``last`` exists)::
+
+    for epoch in tail.remaining():
+        for batch in batches(epoch):
+            stats = train_step(model, batch, optim, scheduler)   # ends in optimizer_step(loss, ...)
+            tail.step += 1
+        tail.end_epoch(epoch, {"train_loss": mean_loss})
+"""
+from __future__ import annotations
+
+import math
+import os
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+import torch
+
+from m3t.atomic import atomic_path
+
+
+# ---- schedule and step ----------------------------------------------------------------------------------
+def lr_factor(step: int, warmup_steps: int, total_steps: int, floor: float) -> float:
+    """Multiplier of the base LR at optimiser step ``step``: linear warm-up to 1, then cosine to ``floor``."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def warmup_cosine(optim: torch.optim.Optimizer, epochs: int, steps_per_epoch: int, warmup: int,
+                  warmup_unit: Literal["epochs", "steps"], min_lr: float) -> torch.optim.lr_scheduler.LambdaLR:
+    """The LR schedule of every trainer, stepped once per optimiser step: ``warmup`` epochs or steps (as
+    ``warmup_unit`` says) of linear warm-up, then cosine from the optimiser's LR down to ``min_lr`` at the end
+    of ``epochs * steps_per_epoch`` steps."""
+    if warmup_unit not in ("epochs", "steps"):
+        raise ValueError(f"warmup_unit {warmup_unit!r} unknown; allowed: epochs, steps")
+    total = epochs * steps_per_epoch
+    warm = warmup * steps_per_epoch if warmup_unit == "epochs" else warmup
+    floor = min_lr / optim.defaults["lr"]
+    return torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, warm, total, floor))
+
+
+def average_gradients(model: torch.nn.Module) -> None:
+    """Mean of every parameter's gradient over the ranks, for a model not wrapped in DDP. A parameter this
+    step did not use gets a zero gradient first, so every rank reduces the same list in the same order."""
+    world = torch.distributed.get_world_size()
+    for p in model.parameters():
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+        torch.distributed.all_reduce(p.grad)
+        p.grad /= world
+
+
+def optimizer_step(loss: torch.Tensor, model: torch.nn.Module, optim: torch.optim.Optimizer,
+                   scheduler: torch.optim.lr_scheduler.LRScheduler, grad_clip: float = 0.0,
+                   average_grads: bool = False) -> None:
+    """Backward, then (``average_grads`` and a process group up) :func:`average_gradients`, clipping of the
+    gradient norm to ``grad_clip`` (0 = none), the optimiser step and the LR schedule's step."""
+    optim.zero_grad(set_to_none=True)
+    loss.backward()
+    if average_grads and torch.distributed.is_available() and torch.distributed.is_initialized():
+        average_gradients(model)
+    if grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    optim.step()
+    scheduler.step()
+
+
+# ---- checkpoint files and RNG state ---------------------------------------------------------------------
+def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
+    """``torch.save`` of a checkpoint payload, atomically (a reader never sees half a file)."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return Path(path)
+
+
+def read_checkpoint(path: str | os.PathLike, fmt: str, kind: str, stage: str,
+                    device: str | torch.device = "cpu") -> dict[str, Any]:
+    """The payload of a self-describing checkpoint of format ``fmt`` (``weights_only`` loading); clear errors
+    for a missing file (run ``stage``), an unreadable one and one of another format."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{kind} checkpoint {path} not found; run `dvc repro {stage}` first")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same advice
+        raise ValueError(f"{path}: not a readable {kind} checkpoint ({type(exc).__name__}: {exc}); "
+                         "delete it and retrain") from exc
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        found = payload.get("format") if isinstance(payload, dict) else None
+        raise ValueError(f"{path}: not an m3t {kind} checkpoint (format {found!r}, expected {fmt!r})")
+    return payload
+
+
+def rng_state() -> dict[str, Any]:
+    """The global torch (CPU), numpy and python ``random`` generators, in types ``weights_only`` loads."""
+    name, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {"torch": torch.get_rng_state(), "numpy": [name, keys.tolist(), pos, has_gauss, gauss],
+            "python": random.getstate()}
+
+
+def set_rng_state(state: dict[str, Any] | torch.Tensor) -> None:
+    """Restore :func:`rng_state`'s generators (a bare tensor: a torch-only state of older checkpoints)."""
+    if isinstance(state, torch.Tensor):
+        state = {"torch": state}
+    torch.set_rng_state(state["torch"].cpu())
+    if "numpy" in state:
+        name, keys, pos, has_gauss, gauss = state["numpy"]
+        np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, gauss))
+    if "python" in state:
+        version, internal, gauss = state["python"]
+        random.setstate((version, tuple(internal), gauss))
+
+
+# ---- the epoch tail -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Selection:
+    """The ``best`` epoch: the one whose record has the lowest (``"min"``) or highest (``"max"``) ``metric``;
+    a tie keeps the earlier epoch."""
+
+    metric: str
+    mode: Literal["min", "max"] = "min"
+
+    def __post_init__(self):
+        if self.mode not in ("min", "max"):
+            raise ValueError(f"selection mode {self.mode!r} unknown; allowed: min, max")
+
+    @property
+    def worst(self) -> float:
+        return math.inf if self.mode == "min" else -math.inf
+
+    def better(self, value: float, than: float) -> bool:
+        return value < than if self.mode == "min" else value > than
+
+
+class EpochTail:
+    """Everything after an epoch's batches. ``end_epoch`` adds ``epoch`` and ``lr`` to the epoch's training
+    means; on rank 0 only it then runs ``evaluate()`` every ``eval_every`` epochs and after the last one
+    (values logged as ``val_<name>``), saves ``best_path`` when the record is a new best by ``selection``,
+    appends the record to ``history``, saves ``last_path`` with :meth:`train_state` (when a path is given)
+    and calls ``on_epoch(record, epoch)``.
+
+    Candidates for ``best`` are the evaluated epochs, or every epoch when there is no ``evaluate``.
+    ``save(path, epoch, step, record, train_state)`` writes the trainer's own checkpoint; ``train_state``
+    is None for ``best``. ``step`` (optimiser steps so far) is counted by the trainer's loop.
+    """
+
+    def __init__(self, epochs: int, eval_every: int, selection: Selection, optim: torch.optim.Optimizer,
+                 scheduler: torch.optim.lr_scheduler.LRScheduler,
+                 save: Callable[[Path, int, int, dict[str, float], dict[str, Any] | None], Any],
+                 best_path: str | os.PathLike, last_path: str | os.PathLike | None = None,
+                 evaluate: Callable[[], dict[str, float]] | None = None, is_main: bool = True,
+                 on_epoch: Callable[[dict[str, float], int], None] | None = None):
+        self.epochs, self.eval_every, self.selection = epochs, eval_every, selection
+        self.optim, self.scheduler, self.save, self.evaluate = optim, scheduler, save, evaluate
+        self.best_path, self.last_path = Path(best_path), None if last_path is None else Path(last_path)
+        self.is_main, self.on_epoch = is_main, on_epoch
+        self.epoch, self.step, self.best_score = 0, 0, selection.worst
+        self.history: list[dict[str, float]] = []
+        self.best: dict[str, float] = {}
+
+    def remaining(self, stop_after_epochs: int | None = None) -> range:
+        """Epoch indices still to train (from a resumed epoch on), at most ``stop_after_epochs`` of them."""
+        end = self.epochs if stop_after_epochs is None else min(self.epochs, self.epoch + stop_after_epochs)
+        return range(self.epoch, end)
+
+    def train_state(self) -> dict[str, Any]:
+        """What a ``last`` checkpoint carries to continue the same run exactly."""
+        return {"optimizer": self.optim.state_dict(), "scheduler": self.scheduler.state_dict(),
+                "rng": rng_state(), "epoch": self.epoch, "step": self.step, "best_score": self.best_score,
+                "history": self.history, "best": self.best}
+
+    def resume(self, state: dict[str, Any]) -> None:
+        """Continue from a :meth:`train_state` (the model's weights are the trainer's to load)."""
+        self.optim.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        set_rng_state(state["rng"])
+        self.epoch, self.step, self.best_score = state["epoch"], state["step"], state["best_score"]
+        self.history, self.best = list(state["history"]), dict(state["best"])
+
+    def end_epoch(self, epoch: int, train_means: dict[str, float], bar: Any = None) -> dict[str, float] | None:
+        """Close epoch ``epoch`` (0-based); returns its record on rank 0, None on the others. ``bar``: a
+        progress bar (``set_postfix``) to show the training means and the selection metric on."""
+        self.epoch = epoch + 1
+        record = {**train_means, "epoch": self.epoch, "lr": self.optim.param_groups[0]["lr"]}
+        if not self.is_main:
+            return None
+        evaluated = self.evaluate is not None and (self.epoch % self.eval_every == 0 or self.epoch == self.epochs)
+        if evaluated:
+            record.update({f"val_{k}": v for k, v in self.evaluate().items()})
+        if evaluated or self.evaluate is None:
+            if self.selection.metric not in record:
+                raise KeyError(f"selection metric {self.selection.metric!r} is not in the record of epoch "
+                               f"{self.epoch} (keys: {', '.join(record)}); the evaluation must return it")
+            score = record[self.selection.metric]
+            if self.selection.better(score, self.best_score):
+                self.best_score, self.best = score, dict(record)
+                self.save(self.best_path, self.epoch, self.step, record, None)
+        self.history.append(record)
+        if self.last_path is not None:
+            self.save(self.last_path, self.epoch, self.step, record, self.train_state())
+        if bar is not None:
+            bar.set_postfix({k.removeprefix("train_"): f"{v:.4g}" for k, v in record.items()
+                             if k.startswith("train_") or k == self.selection.metric})
+        if self.on_epoch is not None:
+            self.on_epoch(record, self.epoch)
+        return record

@@ -1,0 +1,141 @@
+"""The shared training mechanics: schedule values, best selection in both directions, evaluation cadence,
+rank-0-only saving, and a ``last`` checkpoint that continues the same run (optimizer, schedule, RNG)."""
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+import torch
+
+from m3t.training import EpochTail, Selection, optimizer_step, read_checkpoint, save_checkpoint, warmup_cosine
+
+
+def lrs(scheduler, steps: int) -> list[float]:
+    """The LR used by each of the first ``steps`` optimiser steps."""
+    out = []
+    for _ in range(steps):
+        out.append(scheduler.optimizer.param_groups[0]["lr"])
+        scheduler.optimizer.step()
+        scheduler.step()
+    return out
+
+
+def sgd(lr: float = 1.0) -> torch.optim.Optimizer:
+    return torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=lr)
+
+
+@pytest.mark.parametrize("unit, warmup", [("epochs", 2), ("steps", 20)])
+def test_schedule_warms_up_then_decays_to_the_floor(unit, warmup):
+    # 10 epochs x 10 steps, 20 warm-up steps (2 epochs), LR 2.0 -> 0.02
+    lr = lrs(warmup_cosine(sgd(2.0), 10, 10, warmup, unit, min_lr=0.02), 101)
+    assert lr[0] == pytest.approx(2.0 / 20)  # warm-up starts at 1/20
+    assert lr[19] == pytest.approx(2.0)  # warm-up ends at the full LR
+    assert all(a < b for a, b in zip(lr[:19], lr[1:20]))
+    assert lr[60] == pytest.approx((2.0 + 0.02) / 2)  # half-way through the cosine
+    assert all(a >= b for a, b in zip(lr[20:100], lr[21:101]))
+    assert lr[100] == pytest.approx(0.02)  # the end of training: the floor
+
+
+def test_schedule_without_warm_up_starts_at_the_full_lr_and_refuses_unknown_units():
+    assert lrs(warmup_cosine(sgd(), 2, 5, 0, "steps", min_lr=0.0), 1) == [1.0]
+    with pytest.raises(ValueError, match="warmup_unit 'minutes' unknown"):
+        warmup_cosine(sgd(), 2, 5, 1, "minutes", 0.0)
+
+
+def make_tail(tmp_path, scores, mode="min", eval_every=1, epochs=None, evaluate=True, is_main=True,
+              selection=None):
+    """A tail over a tiny model; ``evaluate`` returns the next of ``scores`` as ``val_score``."""
+    model = torch.nn.Linear(2, 1)
+    optim = torch.optim.Adam(model.parameters(), lr=0.1)
+    scheduler = warmup_cosine(optim, epochs or len(scores), 1, 1, "epochs", 1e-3)
+    saved, logged, values = [], [], iter(scores)
+
+    def save(path, epoch, step, record, state):
+        saved.append((path.name, epoch))
+        save_checkpoint(path, {"format": "test", "state_dict": model.state_dict(), "train_state": state})
+
+    selection = selection or Selection("val_score", mode)
+    tail = EpochTail(epochs or len(scores), eval_every, selection, optim, scheduler, save,
+                     tmp_path / "best.pt", tmp_path / "last.pt",
+                     evaluate=(lambda: {"score": next(values)}) if evaluate else None, is_main=is_main,
+                     on_epoch=lambda record, epoch: logged.append(epoch))
+    return tail, model, saved, logged
+
+
+def run(tail, model, epochs):
+    for epoch in epochs:
+        loss = model(torch.randn(4, 2)).pow(2).mean()
+        optimizer_step(loss, model, tail.optim, tail.scheduler, grad_clip=1.0)
+        tail.step += 1
+        tail.end_epoch(epoch, {"train_loss": loss.item()})
+
+
+@pytest.mark.parametrize("mode, best_epoch", [("min", 2), ("max", 4)])
+def test_best_is_selected_by_the_named_metric_in_either_direction(tmp_path, mode, best_epoch):
+    tail, model, saved, logged = make_tail(tmp_path, [3.0, 1.0, 2.0, 5.0, 1.0], mode)
+    run(tail, model, tail.remaining())
+    assert tail.best["epoch"] == best_epoch and tail.best["val_score"] == (1.0 if mode == "min" else 5.0)
+    bests = [e for name, e in saved if name == "best.pt"]
+    assert bests[-1] == best_epoch  # a tie (epoch 5 in "min") keeps the earlier epoch
+    assert [h["epoch"] for h in tail.history] == logged == [1, 2, 3, 4, 5]
+    assert read_checkpoint(tmp_path / "best.pt", "test", "test", "none")["train_state"] is None
+
+
+def test_only_evaluated_epochs_compete_and_the_last_epoch_is_always_evaluated(tmp_path):
+    tail, model, saved, _ = make_tail(tmp_path, [9.0, 8.0], eval_every=2, epochs=3)
+    run(tail, model, tail.remaining())
+    assert ["val_score" in h for h in tail.history] == [False, True, True]
+    assert [e for name, e in saved if name == "best.pt"] == [2, 3]
+
+
+def test_without_an_evaluator_every_epoch_competes_on_its_training_record(tmp_path):
+    tail, model, saved, _ = make_tail(tmp_path, [], epochs=3, evaluate=False, selection=Selection("epoch", "max"))
+    run(tail, model, tail.remaining())
+    assert [e for name, e in saved if name == "best.pt"] == [1, 2, 3]
+    tail, model, _, _ = make_tail(tmp_path / "b", [], epochs=1, evaluate=False)  # metric never logged: said so
+    with pytest.raises(KeyError, match="selection metric 'val_score' is not in the record of epoch 1"):
+        run(tail, model, tail.remaining())
+
+
+def test_other_ranks_neither_evaluate_nor_save_nor_log(tmp_path):
+    tail, model, saved, logged = make_tail(tmp_path, [1.0, 2.0], is_main=False)
+    run(tail, model, tail.remaining())
+    assert saved == [] and logged == [] and tail.history == [] and tail.epoch == 2 and tail.step == 2
+
+
+def test_last_checkpoint_continues_the_same_run(tmp_path):
+    scores = [3.0, 1.0, 2.0, 0.5]
+    torch.manual_seed(0), np.random.seed(0), random.seed(0)
+    straight, model, _, _ = make_tail(tmp_path / "a", scores)
+    run(straight, model, straight.remaining())
+    expected = (model.state_dict(), straight.history, torch.rand(3), np.random.rand(3), random.random())
+
+    torch.manual_seed(0), np.random.seed(0), random.seed(0)
+    part, model, _, _ = make_tail(tmp_path / "b", scores)
+    run(part, model, part.remaining(stop_after_epochs=2))
+    assert len(part.history) == 2
+    torch.manual_seed(123), np.random.seed(123), random.seed(123)  # another process, other draws
+    payload = read_checkpoint(tmp_path / "b" / "last.pt", "test", "test", "none")  # weights_only
+    resumed, model, _, _ = make_tail(tmp_path / "b", scores[2:], epochs=4)
+    model.load_state_dict(payload["state_dict"])
+    resumed.resume(payload["train_state"])
+    assert (resumed.epoch, resumed.step, resumed.best["epoch"]) == (2, 2, 2)
+    assert list(resumed.remaining()) == [2, 3]
+    run(resumed, model, resumed.remaining())
+    state, history, torch_draw, numpy_draw, python_draw = expected
+    assert resumed.history == history  # losses, LRs, validation values: exactly the same
+    assert all(torch.equal(state[k], v) for k, v in model.state_dict().items())
+    assert torch.equal(torch.rand(3), torch_draw) and np.array_equal(np.random.rand(3), numpy_draw)
+    assert random.random() == python_draw
+    assert resumed.best["epoch"] == 4 and math.isclose(resumed.best_score, 0.5)
+
+
+def test_an_older_torch_only_rng_state_still_resumes(tmp_path):
+    tail, model, _, _ = make_tail(tmp_path, [1.0, 2.0])
+    run(tail, model, tail.remaining(1))
+    state = dict(tail.train_state(), rng=torch.get_rng_state())
+    expected = torch.rand(2)
+    tail.resume(state)
+    assert torch.equal(torch.rand(2), expected)
