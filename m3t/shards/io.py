@@ -164,7 +164,10 @@ def write_table_atomic(path: str | os.PathLike, table: pa.Table) -> Path:
                 writer.write_table(table)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if path.is_file() and path.stat().st_size == tmp.stat().st_size and path.read_bytes() == tmp.read_bytes():
+            tmp.unlink()  # identical content: leave the file (and its mtime) alone, so DVC sees no change
+        else:
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
