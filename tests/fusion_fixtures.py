@@ -70,6 +70,13 @@ def ground_truth(body, frames: int = 10, seed: int = 7) -> GroundTruth:
     return GroundTruth(params, rot, betas, shape, identity)
 
 
+def rot_err_deg(a6: np.ndarray, b_rot: np.ndarray) -> float:
+    """Largest geodesic angle (degrees) between 6D rotations ``a6`` (..., n * 6) and matrices ``b_rot`` (..., n, 3, 3)."""
+    a = sixd_to_matrix(torch.as_tensor(a6, dtype=torch.float64).reshape(*b_rot.shape[:-2], 6))
+    rel = a.transpose(-1, -2) @ torch.as_tensor(b_rot)
+    return float(torch.rad2deg(roma.rotmat_geodesic_distance(rel, torch.eye(3, dtype=torch.float64))).max())
+
+
 def pytorch3d_6d(rot: np.ndarray) -> np.ndarray:
     return rot[..., :2, :].reshape(*rot.shape[:-2], 6)  # first two rows, as PyTorch3D stores it
 

@@ -8,12 +8,10 @@ import pickle
 
 import numpy as np
 import pytest
-import roma
 import torch
-from fusion_fixtures import ground_truth, write_nlf, write_pixel3dmm, write_wilor
+from fusion_fixtures import ground_truth, rot_err_deg, write_nlf, write_pixel3dmm, write_wilor
 from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
 
-from m3t.body.rotations import sixd_to_matrix
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.fitting.fit import FittingConfig
 from m3t.fitting.fusion import HELD, INTERPOLATED, FusionConfig, TrackerStream, fuse, fuse_trackers, refine
@@ -31,12 +29,6 @@ def fx(tmp_path_factory):
 @pytest.fixture(scope="module")
 def truth(fx):
     return ground_truth(fx, frames=T, seed=7)
-
-
-def rot_err_deg(a6: np.ndarray, b_rot: np.ndarray) -> float:
-    a = sixd_to_matrix(torch.as_tensor(a6, dtype=torch.float64).reshape(*b_rot.shape[:-2], 6))
-    rel = a.transpose(-1, -2) @ torch.as_tensor(b_rot)
-    return float(torch.rad2deg(roma.rotmat_geodesic_distance(rel, torch.eye(3, dtype=torch.float64))).max())
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".pt"])

@@ -8,9 +8,9 @@ import shutil
 
 import numpy as np
 import pytest
-import roma
 import torch
 from fusion_fixtures import (
+    rot_err_deg,
     NLF_MISSING,
     PIXEL3DMM_MISSING,
     WILOR_RIGHT_MISSING,
@@ -24,7 +24,6 @@ from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
 
 from m3t.body.anny_body import BODY_BONES, PHENOTYPES, hand_bones
 from m3t.body.protocol import Modality, ModalityLayout
-from m3t.body.rotations import sixd_to_matrix
 from m3t.fitting.fit import FitResult, FittingConfig, fit_track
 from m3t.fitting.fusion import (
     HELD,
@@ -51,12 +50,6 @@ def fx(tmp_path_factory):
 @pytest.fixture(scope="module")
 def truth(fx):
     return ground_truth(fx, frames=T, seed=7)
-
-
-def rot_err_deg(a6: np.ndarray, b_rot: np.ndarray) -> float:
-    a = sixd_to_matrix(torch.as_tensor(a6, dtype=torch.float64).reshape(*b_rot.shape[:-2], 6))
-    rel = a.transpose(-1, -2) @ torch.as_tensor(b_rot)
-    return float(torch.rad2deg(roma.rotmat_geodesic_distance(rel, torch.eye(3, dtype=torch.float64))).max())
 
 
 def frames_except(*missing: int) -> list[int]:
