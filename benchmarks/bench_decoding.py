@@ -19,7 +19,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.report import write_and_log  # noqa: E402
 from m3t.smlm.generate import generate_motion  # noqa: E402
-from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims  # noqa: E402
+from m3t.smlm.config import SMLMConfig  # noqa: E402
+from m3t.smlm.model import SignMotionLM, SMLMDims  # noqa: E402
 from m3t.smlm.vocab import MOTION_STREAMS, build_vocabulary  # noqa: E402
 
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}

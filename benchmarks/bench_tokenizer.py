@@ -26,7 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from m3t.shards.io import read_shard  # noqa: E402
 from m3t.tokenizers.data import WindowSampler, clip_sequences  # noqa: E402
-from m3t.tokenizers.train import TokenizerConfig, lr_factor, train_step  # noqa: E402
+from m3t.tokenizers.config import TokenizerConfig  # noqa: E402
+from m3t.tokenizers.train import train_step  # noqa: E402
+from m3t.training import lr_factor  # noqa: E402
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters  # noqa: E402
 from report import write_and_log  # noqa: E402
 

@@ -20,13 +20,10 @@ from m3t.body.config import BodyConfig
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
 from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
-from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig
-from m3t.fitting.fusion import FusionConfig
+from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
 from m3t.shards.folders import DataConfig
-from m3t.smlm.config import GenerateConfig
-from m3t.smlm.model import SMLMConfig
-from m3t.smlm.train import SMLMTrainConfig
-from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig
+from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
+from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 
 PRESET_DIR = Path(__file__).parent / "presets"

@@ -14,7 +14,8 @@ from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
 
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.fitting.fit import FittingConfig
-from m3t.fitting.fusion import HELD, INTERPOLATED, FusionConfig, TrackerStream, fuse, fuse_trackers, refine
+from m3t.fitting.config import FusionConfig
+from m3t.fitting.fusion import HELD, INTERPOLATED, TrackerStream, fuse, fuse_trackers, refine
 from m3t.trackers.external import TrackerFileError, load_tracker_file, read_nlf, read_pixel3dmm, read_wilor
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 

@@ -24,12 +24,12 @@ from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
 
 from m3t.body.anny_body import BODY_BONES, PHENOTYPES, hand_bones
 from m3t.body.protocol import Modality, ModalityLayout
-from m3t.fitting.fit import FitResult, FittingConfig, fit_track
+from m3t.fitting.config import FittingConfig, FusionConfig
+from m3t.fitting.fit import FitResult, fit_track
 from m3t.fitting.fusion import (
     HELD,
     INTERPOLATED,
     REST,
-    FusionConfig,
     FusionUnsupported,
     describe,
     initialise_from_trackers,

@@ -12,8 +12,9 @@ from m3t.runtime import DistributedContext
 from m3t.smlm.checkpoint import load_smlm, save_smlm
 from m3t.smlm.data import IGNORE, Example, production_batch, translation_batch
 from m3t.smlm.generate import generate_motion, translate
-from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
-from m3t.smlm.train import SMLMTrainConfig, train_smlm, train_step
+from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
+from m3t.smlm.model import SignMotionLM, SMLMDims
+from m3t.smlm.train import train_smlm, train_step
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary, VocabularyError, build_vocabulary
 
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}

@@ -20,7 +20,8 @@ from m3t.shards.schema import FittedClip
 from m3t.shards.tokens import read_token_shard
 from m3t.tokenizers.data import clip_sequences, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
-from m3t.tokenizers.train import TokenizerConfig, TokenizerTrainConfig, train_step, train_tokenizer
+from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
+from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
 from test_fitting import front_camera, smooth_motion
 

@@ -19,8 +19,9 @@ from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
 from m3t.tokenizers.data import GROUPS, WindowSampler, clip_sequences, from_canonical, pad_to_multiple, to_canonical
 from m3t.tokenizers.evaluate import encode_clip, reconstruct_clip
 from m3t.tokenizers.fsq import FSQ
-from m3t.tokenizers.train import TokenizerConfig, lr_factor
-from m3t.tokenizers.vae import MotionTokenizer, VAEConfig, count_parameters
+from m3t.tokenizers.config import TokenizerConfig, VAEConfig
+from m3t.tokenizers.vae import MotionTokenizer, count_parameters
+from m3t.training import lr_factor
 from m3t.tokenizers.vq import EMAResetVQ
 
 PAPER_LEVELS = [(5, 5, 4), (6, 6, 5), (6, 6, 6)]

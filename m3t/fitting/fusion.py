@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import roma
@@ -45,7 +44,8 @@ import torch
 from m3t.body.protocol import BodyModel, ModalityLayout
 from m3t.body.smplfx import FACE_LABELS
 from m3t.body.smplfx_build import SMPLX_JOINTS
-from m3t.fitting.config import FusionConfig
+from m3t.fitting.config import FittingConfig, FusionConfig
+from m3t.fitting.fit import FitResult, fit_track
 from m3t.trackers.external import (
     TRACKERS,
     BodyEstimates,
@@ -58,9 +58,6 @@ from m3t.trackers.external import (
     rotmat_to_6d,
 )
 from m3t.trackers.track import Track
-
-if TYPE_CHECKING:  # m3t.fitting.config imports FusionConfig from here and fit imports config: no import cycle
-    from m3t.fitting.fit import FitResult, FittingConfig
 
 INTERPOLATED, HELD, REST = -1, -2, -3
 SMPLX_BETAS = tuple(f"smplx_beta_{i}" for i in range(10))
@@ -361,8 +358,6 @@ def refine(track: Track, fused: FusedInit, body: BodyModel, cfg: FittingConfig) 
     :func:`m3t.fitting.fit.fit_track`'s :class:`FitResult`."""
     if any(v.shape[0] != track.num_frames for v in fused.init.values()):
         raise ValueError(f"fused initialisation and track disagree on the number of frames ({track.num_frames})")
-    # Imported here, not at the top: see the TYPE_CHECKING import.
-    from m3t.fitting.fit import fit_track
 
     model = body if fused.identity is None else _WithIdentity(body, fused.identity)
     return fit_track(dataclasses.replace(track, init=fused.init), model, cfg)

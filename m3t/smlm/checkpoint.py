@@ -11,7 +11,8 @@ from pathlib import Path
 
 import torch
 
-from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
+from m3t.smlm.config import SMLMConfig
+from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
 from m3t.training import read_checkpoint, save_checkpoint
 

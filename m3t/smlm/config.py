@@ -1,7 +1,9 @@
-"""Configs of the Sign Motion Language Model (params.yaml ``smlm_generate``; ``smlm`` / ``smlm_train`` follow)."""
+"""Configs of the Sign Motion Language Model (params.yaml ``smlm``, ``smlm_train``, ``smlm_generate``). Plain
+dataclasses: importing them costs no model code."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -12,3 +14,42 @@ class GenerateConfig:
     batch_size: int = 16
     render_clips: int = 2
     export_pose: bool = True
+
+
+@dataclass(frozen=True)
+class SMLMConfig:
+    """Model and vocabulary sizes (params section ``smlm``). Paper: mbart-large-cc25, 12 + 12 layers, 1024."""
+
+    d_model: int = 128
+    encoder_layers: int = 3
+    decoder_layers: int = 3
+    attention_heads: int = 4
+    ffn_dim: int = 512
+    dropout: float = 0.1
+    max_text_tokens: int = 64  # longer input text is refused with a clear error
+    max_motion_tokens: int = 256  # motion steps per clip (4 frames each); longer clips are skipped in training
+    text_vocab_size: int = 1000  # upper bound for the tokenizer trained on the corpus text
+    text_model_path: str = ""  # local mBART folder with sentencepiece.bpe.model; "" = train on the corpus
+    pretrained_path: str = ""  # local mbart-large-cc25 weights; "" = random init
+
+
+@dataclass(frozen=True)
+class SMLMTrainConfig:
+    """``smlm_train`` section; defaults = params.yaml (the paper's AdamW, cosine 2e-4 -> 1e-6, 200 epochs,
+    batch 32 are in ``presets/paper.yaml``)."""
+
+    epochs: int = 200
+    batch_size: int = 8
+    lr: float = 5e-4
+    min_lr: float = 1e-6
+    warmup_steps: int = 50
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    translation_objective: bool = True
+    translation_prob: float = 0.5
+    label_smoothing: float = 0.0
+    eval_every: int = 20
+    eval_max_clips: int = 64
+    seed: int = 0
+    device: str = "auto"
+    precision: Literal["fp32", "bf16"] = "fp32"

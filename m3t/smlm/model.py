@@ -25,26 +25,10 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from m3t.smlm.config import SMLMConfig
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
 
 HEADS = ("text", *MOTION_STREAMS)
-
-
-@dataclass(frozen=True)
-class SMLMConfig:
-    """Model and vocabulary sizes (params section ``smlm``). Paper: mbart-large-cc25, 12 + 12 layers, 1024."""
-
-    d_model: int = 128
-    encoder_layers: int = 3
-    decoder_layers: int = 3
-    attention_heads: int = 4
-    ffn_dim: int = 512
-    dropout: float = 0.1
-    max_text_tokens: int = 64  # longer input text is refused with a clear error
-    max_motion_tokens: int = 256  # motion steps per clip (4 frames each); longer clips are skipped in training
-    text_vocab_size: int = 1000  # upper bound for the tokenizer trained on the corpus text
-    text_model_path: str = ""  # local mBART folder with sentencepiece.bpe.model; "" = train on the corpus
-    pretrained_path: str = ""  # local mbart-large-cc25 weights; "" = random init
 
 
 @dataclass(frozen=True)

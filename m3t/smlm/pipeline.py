@@ -34,12 +34,11 @@ from m3t.shards.tokens import (
     write_token_shard,
 )
 from m3t.smlm.checkpoint import LoadedSMLM, load_smlm
-from m3t.smlm.config import GenerateConfig
+from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
 from m3t.smlm.data import Example, examples_from_shard
 from m3t.smlm.evaluate import EvaluationReport, SMLMEvaluator
 from m3t.smlm.generate import GeneratedMotion
-from m3t.smlm.model import SMLMConfig
-from m3t.smlm.train import SMLMTrainConfig, train_smlm
+from m3t.smlm.train import train_smlm
 from m3t.smlm.vocab import SignVocabulary, build_vocabulary
 from m3t.tokenizers.pipeline import data_version
 from m3t.tokenizers.tokenize import load_tokenizers

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -31,31 +31,10 @@ from m3t.smlm.data import (
     production_batch,
     translation_batch,
 )
-from m3t.smlm.model import SignMotionLM, SMLMConfig, SMLMDims
+from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
+from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
 from m3t.training import EpochTail, Selection, optimizer_step, warmup_cosine
-
-
-@dataclass(frozen=True)
-class SMLMTrainConfig:
-    """``smlm_train`` section; defaults = params.yaml (the paper's AdamW, cosine 2e-4 -> 1e-6, 200 epochs,
-    batch 32 are in ``presets/paper.yaml``)."""
-
-    epochs: int = 200
-    batch_size: int = 8
-    lr: float = 5e-4
-    min_lr: float = 1e-6
-    warmup_steps: int = 50
-    weight_decay: float = 0.01
-    grad_clip: float = 1.0
-    translation_objective: bool = True
-    translation_prob: float = 0.5
-    label_smoothing: float = 0.0
-    eval_every: int = 20
-    eval_max_clips: int = 64
-    seed: int = 0
-    device: str = "auto"
-    precision: Literal["fp32", "bf16"] = "fp32"
 
 
 @dataclass

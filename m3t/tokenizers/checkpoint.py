@@ -13,7 +13,8 @@ from typing import Any
 
 import torch
 
-from m3t.tokenizers.vae import MotionTokenizer, VAEConfig
+from m3t.tokenizers.config import VAEConfig
+from m3t.tokenizers.vae import MotionTokenizer
 from m3t.training import read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-tokenizer-v1"

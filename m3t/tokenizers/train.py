@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -23,61 +23,16 @@ from m3t.runtime import DistributedContext, autocast, choose_device
 from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
 from m3t.tokenizers.data import WindowSampler, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
-from m3t.tokenizers.vae import MotionTokenizer, VAEConfig
+from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
+from m3t.tokenizers.vae import MotionTokenizer
 from m3t.training import (
     EpochTail,
     Selection,
-    lr_factor,  # noqa: F401 - re-exported, older callers import it from here
     optimizer_step,
     warmup_cosine,
 )
 
 TRAIN_VERSION = "tok-v2"  # part of the resume key: bump when a change makes older training state invalid
-
-
-@dataclass(frozen=True)
-class TokenizerConfig:
-    """``tokenizer`` section: the architecture shared by the three groups (App. 0.D.1) and the quantiser."""
-
-    quantizer: Literal["fsq", "vq"] = "fsq"
-    width: int = 128
-    depth: int = 6
-    down_stages: int = 2
-    dilation_growth: int = 3
-    levels_body: tuple[int, ...] = (5, 5, 4)
-    levels_hand: tuple[int, ...] = (6, 6, 5)
-    levels_face: tuple[int, ...] = (6, 6, 6)
-    vq_code_dim: int = 64
-    vq_decay: float = 0.99
-    vq_beta: float = 0.02
-
-    def vae_config(self, group: str, input_dim: int) -> VAEConfig:
-        levels = {"body": self.levels_body, "hand": self.levels_hand, "face": self.levels_face}[group]
-        return VAEConfig(input_dim=input_dim, levels=levels, quantizer=self.quantizer, width=self.width,
-                         depth=self.depth, down_stages=self.down_stages, dilation_growth=self.dilation_growth,
-                         vq_code_dim=self.vq_code_dim, vq_decay=self.vq_decay, vq_beta=self.vq_beta)
-
-
-@dataclass(frozen=True)
-class TokenizerTrainConfig:
-    """``tokenizer_train`` section; defaults = params.yaml (the paper's Adam 1e-4, 100 epochs, batch 8, 25 warm-up
-    epochs, floor 1e-6 are in ``presets/paper.yaml``)."""
-
-    cache_dir: str = ".cache/tokenizers"
-    groups: tuple[str, ...] = ("body", "hand", "face")
-    extra_face_shards: tuple[str, ...] = ()  # face-only shards (e.g. MEAD) added to the face training set
-    epochs: int = 30
-    warmup_epochs: int = 5
-    lr: float = 1e-3
-    min_lr: float = 1e-6
-    batch_size: int = 16
-    window: int = 64
-    windows_per_clip: int = 4
-    eval_every: int = 5
-    val_max_frames: int = 2000
-    seed: int = 0
-    device: str = "auto"
-    precision: Literal["fp32", "bf16"] = "fp32"
 
 
 @dataclass

@@ -14,44 +14,15 @@ N = T / downsample tokens.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from m3t.tokenizers.config import VAEConfig
 from m3t.tokenizers.fsq import FSQ
 from m3t.tokenizers.vq import EMAResetVQ
-
-
-@dataclass(frozen=True)
-class VAEConfig:
-    """Everything needed to rebuild one tokenizer; ``input_dim`` and ``levels`` come from the data."""
-
-    input_dim: int
-    levels: tuple[int, ...]
-    quantizer: Literal["fsq", "vq"] = "fsq"
-    width: int = 1024
-    depth: int = 6
-    down_stages: int = 2
-    dilation_growth: int = 3
-    vq_code_dim: int = 512
-    vq_decay: float = 0.99
-    vq_beta: float = 0.02
-
-    @property
-    def codebook_size(self) -> int:
-        return math.prod(self.levels)
-
-    @property
-    def latent_dim(self) -> int:
-        return len(self.levels) if self.quantizer == "fsq" else self.vq_code_dim
-
-    @property
-    def downsample(self) -> int:
-        return 2 ** self.down_stages
 
 
 @dataclass(frozen=True)
