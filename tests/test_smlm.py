@@ -2,6 +2,7 @@
 (EOS, cache), checkpoints, bad inputs, DDP on gloo and bf16."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,7 +15,7 @@ from m3t.smlm.data import IGNORE, Example, production_batch, translation_batch
 from m3t.smlm.generate import generate_motion, translate
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
-from m3t.smlm.train import train_smlm, train_step
+from m3t.smlm.train import run_key, train_smlm, train_step
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary, VocabularyError, build_vocabulary
 
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}
@@ -177,6 +178,37 @@ def test_checkpoint_rebuilds_the_model_and_vocabulary(overfit, vocab, tmp_path):
     with pytest.raises(ValueError, match="not a readable SMLM checkpoint"):
         (tmp_path / "junk.pt").write_bytes(b"junk")
         load_smlm(tmp_path / "junk.pt")
+
+
+def test_killed_training_resumes_on_the_same_loss_curve(vocab, tmp_path):
+    """A ``last`` checkpoint carries weights, optimiser, schedule and RNG: two epochs, a stop, then the rest
+    give the run an uninterrupted training gives (dropout on, so the restored RNG matters)."""
+    examples = make_examples(vocab)
+    model_cfg = dataclasses.replace(TINY, dropout=0.1)
+    cfg = SMLMTrainConfig(epochs=5, batch_size=2, lr=3e-3, warmup_steps=3, device="cpu")
+    straight = train_smlm(model_cfg, cfg, vocab, examples, None, "v", tmp_path / "a.pt", progress=False,
+                          last_path=tmp_path / "a.last.pt")
+    part = train_smlm(model_cfg, cfg, vocab, examples, None, "v", tmp_path / "b.pt", progress=False,
+                      last_path=tmp_path / "b.last.pt", stop_after_epochs=2)
+    assert len(part.history) == 2 and load_smlm(tmp_path / "b.last.pt").train_state["epoch"] == 2
+    resumed = train_smlm(model_cfg, cfg, vocab, examples, None, "v", tmp_path / "b.pt", progress=False,
+                         last_path=tmp_path / "b.last.pt")
+    assert resumed.resumed_from_epoch == 2 and len(resumed.history) == 5
+    losses = lambda r: [h.get("train_production_loss", 0.0) + h.get("train_translation_loss", 0.0)  # noqa: E731
+                        for h in r.history]
+    assert np.allclose(losses(resumed), losses(straight), rtol=1e-5, atol=1e-7)
+    for (name, a), b in zip(straight.model.state_dict().items(), resumed.model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6), name
+    assert load_smlm(tmp_path / "b.pt").epoch == load_smlm(tmp_path / "a.pt").epoch == 5
+
+
+def test_run_key_changes_with_what_the_run_depends_on(vocab):
+    cfg = SMLMTrainConfig(device="cpu")
+    key = run_key(TINY, cfg, vocab, "v")
+    assert key == run_key(TINY, dataclasses.replace(cfg, device="cuda", cache_dir="elsewhere"), vocab, "v")
+    assert key != run_key(TINY, dataclasses.replace(cfg, lr=1e-3), vocab, "v")
+    assert key != run_key(dataclasses.replace(TINY, d_model=32), cfg, vocab, "v")
+    assert key != run_key(TINY, cfg, vocab, "w")
 
 
 def test_production_only_never_trains_the_text_head(vocab, tmp_path):

@@ -1,6 +1,7 @@
 """Self-describing SMLM checkpoints: ``{format, config, dims, backbone_config, vocabulary, state_dict, epoch,
-step, data_version, metrics}``. The model and its vocabulary (with the trained SentencePiece model inside)
-are rebuilt from the file alone, loaded with ``weights_only=True``.
+step, data_version, metrics, train_config[, train_state]}``. The model and its vocabulary (with the trained
+SentencePiece model inside) are rebuilt from the file alone, loaded with ``weights_only=True``.
+``train_state`` (optimizer, scheduler, RNG, history) is present only in the resumable ``last`` checkpoint.
 """
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -28,13 +30,15 @@ class LoadedSMLM:
     data_version: str
     metrics: dict[str, float]
     train_config: dict
-
+    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
 
 
 def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabulary, epoch: int, step: int,
-              data_version: str, metrics: dict[str, float], train_config: dict | None = None) -> Path:
-    """``train_config``: the training settings, kept so evaluations can say which variant they measure."""
-    return save_checkpoint(path, {
+              data_version: str, metrics: dict[str, float], train_config: dict | None = None,
+              train_state: dict[str, Any] | None = None) -> Path:
+    """``train_config``: the training settings, kept so evaluations can say which variant they measure;
+    ``train_state``: what continues the run (:meth:`m3t.training.EpochTail.train_state`), ``last`` only."""
+    payload = {
         "format": FORMAT,
         "config": dataclasses.asdict(model.cfg),
         "dims": dataclasses.asdict(model.dims),
@@ -46,7 +50,10 @@ def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabular
         "data_version": data_version,
         "metrics": {k: float(v) for k, v in metrics.items()},
         "train_config": dict(train_config or {}),
-    })
+    }
+    if train_state is not None:
+        payload["train_state"] = train_state
+    return save_checkpoint(path, payload)
 
 
 def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:
@@ -57,4 +64,5 @@ def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> Lo
     model.load_state_dict(payload["state_dict"])
     model.to(device).eval()
     return LoadedSMLM(model, vocab, payload["epoch"], payload["step"], payload["data_version"],
-                      dict(payload["metrics"]), dict(payload.get("train_config", {})))
+                      dict(payload["metrics"]), dict(payload.get("train_config", {})),
+                      payload.get("train_state"))

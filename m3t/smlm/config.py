@@ -38,6 +38,7 @@ class SMLMTrainConfig:
     """``smlm_train`` section; defaults = params.yaml (the paper's AdamW, cosine 2e-4 -> 1e-6, 200 epochs,
     batch 32 are in ``presets/paper.yaml``)."""
 
+    cache_dir: str = ".cache/smlm"  # best + resumable last checkpoints, named by the run key
     epochs: int = 200
     batch_size: int = 8
     lr: float = 5e-4

@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import json
 from dataclasses import dataclass
+from pathlib import Path
 
 from m3t.atomic import copy_file, write_json, write_jsonl, write_text
 from m3t.body.factory import BodyConfig, load_body_model
@@ -38,7 +39,7 @@ from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
 from m3t.smlm.data import Example, examples_from_shard
 from m3t.smlm.evaluate import EvaluationReport, SMLMEvaluator
 from m3t.smlm.generate import GeneratedMotion
-from m3t.smlm.train import train_smlm
+from m3t.smlm.train import run_key, train_smlm
 from m3t.smlm.vocab import SignVocabulary, build_vocabulary
 from m3t.tokenizers.pipeline import data_version
 from m3t.tokenizers.tokenize import load_tokenizers
@@ -97,13 +98,15 @@ def run_train_smlm(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, body: BodyModel,
                                   max_clips=cfg.eval_max_clips, translation=cfg.translation_objective)
     version = data_version([s.path for split in ("train", "dev") for s in shards[split]])
     out_dir = data.smlm_dir
-    best = out_dir / ".smlm.best.pt"  # copied into place at the end: smlm.pt only ever holds a finished run
+    # best and last live in the cache under the run key (a killed run continues where it stopped; a finished
+    # one is not redone); smlm.pt only ever holds the best of a finished run
+    key = run_key(model_cfg, cfg, vocab, version)
+    best, last = Path(cfg.cache_dir) / f"{key}.best.pt", Path(cfg.cache_dir) / f"{key}.last.pt"
     result = train_smlm(model_cfg, cfg, vocab, train, evaluator, version, best, on_epoch=on_epoch,
-                        dist_ctx=dist_ctx, progress=progress)
+                        dist_ctx=dist_ctx, progress=progress, last_path=last)
     if not dist_ctx.is_main:
         return {}
     copy_file(best, out_dir / "smlm.pt")
-    best.unlink(missing_ok=True)
     report = {"train_examples": float(len(train)), "dev_examples": float(len(dev)), "skipped": float(len(skipped)),
               "vocabulary_size": float(len(vocab)), "text_vocabulary_size": float(vocab.text_size),
               "best_epoch": float(result.best.get("epoch", 0)),

@@ -1,7 +1,8 @@
 """Training the SMLM (M3T Sec. 3.3, App. 0.D.2): AdamW, cosine 2e-4 -> 1e-6, cross-entropy on both tasks,
 alternated per batch (translation with probability ``translation_prob``; ``translation_objective: false``
-trains production only, the ablation of Tab. 1), and the checkpoint with the lowest mean validation DTW-JPE
-kept as ``best``.
+trains production only, the ablation of Tab. 1), the checkpoint with the lowest mean validation DTW-JPE
+kept as ``best``, and a resumable ``last`` written after every epoch: a run killed part-way and started
+again with the same config, vocabulary and data continues the same loss curve (:func:`run_key` names it).
 
 GPU paths: device from :func:`m3t.runtime.choose_device`, optional bf16 autocast, data-parallel training
 when launched by ``torchrun`` (each rank a disjoint share of every epoch's batches, gradients all-reduced
@@ -13,6 +14,8 @@ Axis legend: B batch, U motion steps, S streams, K text tokens.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -22,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from m3t.runtime import DistributedContext, autocast, choose_device
-from m3t.smlm.checkpoint import save_smlm
+from m3t.smlm.checkpoint import load_smlm, save_smlm
 from m3t.smlm.data import (
     IGNORE,
     Example,
@@ -36,6 +39,8 @@ from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
 from m3t.training import EpochTail, Selection, optimizer_step, warmup_cosine
 
+TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid
+
 
 @dataclass
 class SMLMTrainResult:
@@ -43,6 +48,7 @@ class SMLMTrainResult:
     history: list[dict[str, float]] = field(default_factory=list)
     best: dict[str, float] = field(default_factory=dict)
     model: SignMotionLM | None = None  # after the last epoch (not the selected one)
+    resumed_from_epoch: int = 0
 
 
 def production_loss(logits: dict[str, torch.Tensor], targets: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
@@ -100,6 +106,16 @@ def steps_per_epoch(n_examples: int, batch_size: int, world_size: int = 1) -> in
     return chunks // world_size if world_size > 1 else chunks
 
 
+def run_key(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, vocab: SignVocabulary, data_version: str) -> str:
+    """What a resumable ``last`` must agree on to be continued: the code's training version, the model and
+    training settings (not where files go nor the device), the vocabulary and the data."""
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
+    digest = lambda v: hashlib.sha256(v).hexdigest() if isinstance(v, bytes) else str(v)  # noqa: E731
+    text = json.dumps([TRAIN_VERSION, dataclasses.asdict(model_cfg), settings, vocab.to_dict(), data_version],
+                      sort_keys=True, default=digest)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def train_smlm(
     model_cfg: SMLMConfig,
     cfg: SMLMTrainConfig,
@@ -111,8 +127,14 @@ def train_smlm(
     on_epoch: Callable[[dict[str, float], int], None] | None = None,
     dist_ctx: DistributedContext | None = None,
     progress: bool = True,
+    last_path: str | Path | None = None,
+    stop_after_epochs: int | None = None,
 ) -> SMLMTrainResult:
-    """Train the SMLM; ``evaluate(model)`` returns validation metrics incl. ``dtw_jpe_mean_m`` (selection)."""
+    """Train the SMLM; ``evaluate(model)`` returns validation metrics incl. ``dtw_jpe_mean_m`` (selection).
+
+    ``last_path``: the resumable checkpoint, written after every epoch and continued from when it exists
+    (name it by :func:`run_key` so that a different run never continues it); ``stop_after_epochs``: train
+    at most that many more epochs (a deliberate interruption, for tests and time-boxed jobs)."""
     from tqdm.auto import tqdm
 
     if not train:
@@ -134,11 +156,19 @@ def train_smlm(
         cfg.epochs, cfg.eval_every,
         # without an evaluator the last epoch is kept
         Selection("epoch", "max") if evaluate is None else Selection("val_dtw_jpe_mean_m"), optim, scheduler,
-        save=lambda path, epoch, step, record, _: save_smlm(path, model, vocab, epoch, step, data_version, record,
-                                                            settings),
-        best_path=best_path, evaluate=None if evaluate is None else lambda: evaluate(model),
+        save=lambda path, epoch, step, record, state: save_smlm(path, model, vocab, epoch, step, data_version,
+                                                                record, settings, state),
+        best_path=best_path, last_path=last_path, evaluate=None if evaluate is None else lambda: evaluate(model),
         is_main=dist_ctx.is_main, on_epoch=on_epoch)
-    bar = tqdm(tail.remaining(), desc="smlm", unit="epoch", disable=not progress or not dist_ctx.is_main)
+    if last_path is not None and Path(last_path).exists():  # resume: continue the same curve
+        loaded = load_smlm(last_path, device)
+        if loaded.train_state is None:
+            raise ValueError(f"{last_path} has no training state; delete it to start the SMLM afresh")
+        model.load_state_dict(loaded.model.state_dict())
+        tail.resume(loaded.train_state)
+    resumed_from_epoch = tail.epoch
+    bar = tqdm(tail.remaining(stop_after_epochs), desc="smlm", unit="epoch",
+               disable=not progress or not dist_ctx.is_main)
     for epoch in bar:
         model.train()
         losses: dict[str, list[float]] = {}
@@ -149,4 +179,4 @@ def train_smlm(
             tail.step += 1
         # np.mean per key: the two tasks' losses come from different numbers of steps
         tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in losses.items()}, bar)
-    return SMLMTrainResult(Path(best_path), tail.history, tail.best, model)
+    return SMLMTrainResult(Path(best_path), tail.history, tail.best, model, resumed_from_epoch)

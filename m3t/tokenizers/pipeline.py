@@ -34,12 +34,8 @@ from m3t.tokenizers.data import (
     to_canonical,
 )
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
-from m3t.tokenizers.train import (
-    TokenizerConfig,
-    TokenizerTrainConfig,
-    TrainResult,
-    train_tokenizer,
-)
+from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
+from m3t.tokenizers.train import TrainResult, train_tokenizer
 
 
 def data_version(paths: list[Path]) -> str:
