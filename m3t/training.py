@@ -76,9 +76,11 @@ def optimizer_step(loss: torch.Tensor, model: torch.nn.Module, optim: torch.opti
 
 # ---- checkpoint files and RNG state ---------------------------------------------------------------------
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
-    """``torch.save`` of a checkpoint payload, atomically (a reader never sees half a file)."""
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    """``torch.save`` of a checkpoint payload, atomically (a reader never sees half a file). Saved through a
+    file handle: given a path, ``torch.save`` names the zip archive after the (random) temporary file, so
+    the same payload would never give the same bytes, and every digest of a checkpoint would change."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(payload, fh)
     return Path(path)
 
 

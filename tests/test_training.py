@@ -139,3 +139,12 @@ def test_an_older_torch_only_rng_state_still_resumes(tmp_path):
     expected = torch.rand(2)
     tail.resume(state)
     assert torch.equal(torch.rand(2), expected)
+
+
+def test_the_same_checkpoint_payload_gives_the_same_bytes(tmp_path):
+    """Digests of checkpoints (data versions, token-shard provenance, DVC) only change when the content does."""
+    payload = {"format": "x", "state_dict": {"w": torch.arange(6.0).reshape(2, 3)}, "epoch": 3}
+    a = save_checkpoint(tmp_path / "a.pt", payload).read_bytes()
+    b = save_checkpoint(tmp_path / "sub" / "b.pt", payload).read_bytes()
+    assert a == b
+    assert read_checkpoint(tmp_path / "a.pt", "x", "test", "stage")["epoch"] == 3
