@@ -8,6 +8,8 @@
                                           the Tab. 3 sweep: one `dvc exp run --temp -S ...` per setting
     m3t tokenizer-table                   print the Tab. 3-style comparison from MLflow
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
+    m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
+    m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
 """
 from __future__ import annotations
 
@@ -106,6 +108,26 @@ def _cmd_smlm_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bt_table(args: argparse.Namespace) -> int:
+    from m3t.backtranslation.table import backtranslation_table
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+
+    experiment = load_params(args.params).experiment
+    print(backtranslation_table(fetch_runs(experiment, stage="evaluate-backtranslation"),
+                                fetch_runs(experiment, stage="evaluate-smlm")))
+    return 0
+
+
+def _cmd_slr_table(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+    from m3t.slr.table import recognition_table
+
+    print(recognition_table(fetch_runs(load_params(args.params).experiment, stage="evaluate-slr")))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -131,6 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_tokenizer_table)
     p = sub.add_parser("smlm-table", help="print the Tab. 1-style SMLM comparison from MLflow")
     p.set_defaults(func=_cmd_smlm_table)
+    p = sub.add_parser("bt-table", help="print Tab. 2 (back-translation, SL-T definition) from MLflow")
+    p.set_defaults(func=_cmd_bt_table)
+    p = sub.add_parser("slr-table", help="print Tab. 4 (recognition probe with intervals) from MLflow")
+    p.set_defaults(func=_cmd_slr_table)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -2,7 +2,9 @@
 
     fit-corpus/embedded         the embedded corpus with params.yaml (prefect deployment run fit-corpus/embedded)
     train-tokenizers/embedded   tokenizers + token shards (prefect deployment run train-tokenizers/embedded)
+    backtranslation/embedded    train the back-translation judges + score the GT motion (before smlm/embedded)
     smlm/embedded               train + generate + evaluate the SMLM (prefect deployment run smlm/embedded)
+    slr/embedded                train + evaluate the recognition probes (full and face-less)
     evaluate-smlm/nightly       re-evaluates the current SMLM checkpoint every night at 03:00 (cron)
 """
 from __future__ import annotations
@@ -11,7 +13,9 @@ import argparse
 
 from prefect import serve
 
+from flows.backtranslation import backtranslation_flow
 from flows.fit_corpus import fit_corpus
+from flows.slr import slr_flow
 from flows.smlm import evaluate_smlm_flow, smlm_flow
 from flows.tokenizers import train_tokenizers_flow
 
@@ -26,7 +30,9 @@ def main() -> None:
     smlm = smlm_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
     nightly = evaluate_smlm_flow.to_deployment(name="nightly", parameters={"params_path": args.params},
                                                cron=args.cron)
-    serve(embedded, tokenizers, smlm, nightly)
+    judge = backtranslation_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
+    slr = slr_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
+    serve(embedded, tokenizers, judge, smlm, slr, nightly)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,8 @@ def generate(params: Params) -> dict:
 
 @task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
 def evaluate(params: Params) -> dict:
-    return pipeline.evaluate_and_log(params.smlm_generate, params.data, params.body, params.experiment)
+    return pipeline.evaluate_and_log(params.smlm_generate, params.data, params.body, params.experiment,
+                                     params.backtranslation)
 
 
 def _headline(summary: dict) -> str:

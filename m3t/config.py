@@ -16,12 +16,14 @@ from typing import Any, Literal, get_args, get_origin
 
 import yaml
 
+from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTrainConfig
 from m3t.body.config import BodyConfig
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
 from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
 from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
 from m3t.shards.folders import DataConfig
+from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
 from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
@@ -50,6 +52,11 @@ class Params:
     smlm: SMLMConfig
     smlm_train: SMLMTrainConfig
     smlm_generate: GenerateConfig
+    slr: SLRConfig  # recognition probe on frozen tokenizer features, and active-window trimming
+    slr_train: SLRTrainConfig
+    slr_evaluate: SLREvaluateConfig
+    backtranslation: BackTranslationConfig  # the sign-to-text judge of every production model
+    backtranslation_train: BackTranslationTrainConfig
     corpora: dict[str, CorpusSource]  # corpus name -> where it lives and its adapter's options
 
     def fit_job(self, corpus: str | None = None) -> FitJob:

@@ -172,10 +172,16 @@ def test_training_stages_depend_on_every_training_corpus():
     data = params["data"]
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     missing = []
-    for name, root in (("train-tokenizers", "shards_root"), ("tokenize", "shards_root"), ("train-smlm", "tokens_root")):
+    for name, root in (("train-tokenizers", "shards_root"), ("tokenize", "shards_root"), ("train-smlm", "tokens_root"),
+                       ("train-backtranslation", "shards_root")):
         deps = [str(d) for d in stages[name]["deps"]]
         for corpus in data["train_corpora"]:
             shard = f"{data[root]}/{corpus}/train.parquet"
             if shard not in deps:
                 missing.append(f"{name}: {shard}")
-    assert not missing, "dvc.yaml deps miss the shards of data.train_corpora:\n" + "\n".join(missing)
+    for name in ("train-slr", "evaluate-slr"):  # the probe reads the isolated clips of slr.corpus
+        for split in ("train", "dev", "test"):
+            shard = f"{data['shards_root']}/{params['slr']['corpus']}/{split}.parquet"
+            if shard not in [str(d) for d in stages[name]["deps"]]:
+                missing.append(f"{name}: {shard}")
+    assert not missing, "dvc.yaml deps miss the shards of data.train_corpora / slr.corpus:\n" + "\n".join(missing)

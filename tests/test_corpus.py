@@ -109,3 +109,25 @@ def test_write_read_round_trip_and_errors(corpus, tmp_path):
     (root / clips[2].media).write_bytes(b"junk")
     with pytest.raises(ValueError, match="corrupt"):
         reader.ground_truth(clips[2])
+
+
+def test_every_sign_is_in_every_split_and_parts_grow_independently(body):
+    """Six isolated clips per sign (3 signers x 2 sessions) split 4 / 1 / 1 per sign, so recognition is scored
+    on every class; sessions differ (jittered performance); more sentences leave the isolated clips alone."""
+    cfg = dataclasses.replace(CFG, num_signers=3, isolated_per_sign=2, sentences_per_language=1)
+    clips = generate_corpus(cfg, body)
+    iso = [c for c in clips if c.clip.get("kind") == "isolated"]
+    by_label: dict[int, list[str]] = {}
+    for c in iso:
+        by_label.setdefault(c.clip.label, []).append(c.clip.split)
+    assert len(by_label) == cfg.num_signs
+    assert all(sorted(s) == ["dev", "test", "train", "train", "train", "train"] for s in by_label.values())
+    assert len({c.clip.signer for c in iso if c.clip.split == "test"}) == 3  # the held-out signer varies
+    sessions = {c.clip.id: c for c in iso}
+    first = sessions["iso-" + iso[0].clip.gloss.lower() + "-signer00-0"]
+    second = sessions["iso-" + iso[0].clip.gloss.lower() + "-signer00-1"]
+    assert not np.array_equal(first.params["body"], second.params["body"])
+    grown = generate_corpus(dataclasses.replace(cfg, sentences_per_language=3), body)
+    for a, b in zip(iso, [c for c in grown if c.clip.get("kind") == "isolated"]):
+        assert a.clip == b.clip
+        np.testing.assert_array_equal(a.params["body"], b.params["body"])

@@ -67,20 +67,23 @@ def test_summary_is_evaluate_pairs_and_summarise_on_the_metric_points(body, scor
         scorer.reference(cid, ref, ident)
     scores = scorer.score([MotionPair(cid, group, pred, ident) for cid, group, pred, _ in clips])
 
-    kept = [c for c in clips if c[2]]
-    expected = evaluate_pairs([(scorer.points(pred, ident), scorer.points(ref, ident)) for _, _, pred, ref in kept])
+    # the empty prediction of "b" is scored as one frame of the rest pose: every clip is in the means
+    rest = {k: v.numpy() for k, v in body.rest_params(1).items()}
+    shown = [pred or rest for _, _, pred, _ in clips]
+    expected = evaluate_pairs([(scorer.points(s, ident), scorer.points(ref, ident))
+                               for s, (_, _, _, ref) in zip(shown, clips)])
     assert [c.clip_id for c in scores.per_clip] == ["a", "b", "c", "d"]
     assert [c.frames for c in scores.per_clip] == [7, 0, 6, 5]
-    assert scores.per_clip[1].metrics == {}  # an empty prediction keeps its row, without metrics
-    assert [c.metrics for c in scores.per_clip if c.frames] == expected
+    assert [c.metrics for c in scores.per_clip] == expected
+    assert scores.per_clip[1].metrics["dtw_jpe_body_m"] > 0
     assert scores.overall == summarise(expected)
     assert scores.empty_rate == 0.25
     summary = scores.summary
     assert summary["empty_rate"] == 0.25
     assert {k: v for k, v in summary.items() if k.startswith("toy/DGS/")} == {
-        f"toy/DGS/{k}": v for k, v in summarise(expected[:1]).items()}
+        f"toy/DGS/{k}": v for k, v in summarise(expected[:2]).items()}
     assert {k: v for k, v in summary.items() if k.startswith("toy/CSL/")} == {
-        f"toy/CSL/{k}": v for k, v in summarise(expected[1:]).items()}
+        f"toy/CSL/{k}": v for k, v in summarise(expected[2:]).items()}
     assert {"dtw_jpe_body_m", "dtw_pa_jpe_hand_m", "dtw_vpe_face_m"} <= set(summary)
 
 
@@ -102,9 +105,13 @@ def test_a_prediction_equal_to_its_reference_scores_zero(body, scorer, clips):
     assert max(metrics.values()) < 1e-6
 
 
-def test_only_empty_predictions_give_no_means(body, scorer, clips):
-    scores = scorer.score([MotionPair("b", "toy/DGS", {}, body.default_identity().numpy(), reference=clips[1][3])])
-    assert scores.overall == {} and scores.groups == {} and scores.summary == {"empty_rate": 1.0}
+def test_an_empty_prediction_scores_as_the_rest_pose(body, scorer, clips):
+    ident, ref = body.default_identity().numpy(), clips[1][3]
+    rest = {k: v.numpy() for k, v in body.rest_params(1).items()}
+    empty = scorer.score([MotionPair("b", "toy/DGS", {}, ident, reference=ref)])
+    still = scorer.score([MotionPair("b", "toy/DGS", rest, ident, reference=ref)])
+    assert empty.overall == still.overall and empty.empty_rate == 1.0 and still.empty_rate == 0.0
+    assert scorer.score([]).overall == {}
 
 
 # ---------------------------------------------------------------- text, per language

@@ -1,5 +1,5 @@
-"""The SMLM stages end to end on tiny shards: train-smlm -> generate-smlm -> evaluate-smlm through the
-Prefect flow, then the Tab. 1 table from MLflow."""
+"""The SMLM stages end to end on tiny shards: train-smlm -> generate-smlm -> evaluate-smlm (with the generated
+motion back-translated by a tiny judge) through the Prefect flow, then the Tab. 1 table from MLflow."""
 from __future__ import annotations
 
 import json
@@ -11,6 +11,7 @@ import pytest
 import yaml
 from pose_format import Pose
 
+from m3t.backtranslation.pipeline import run_train_backtranslation
 from m3t.config import load_params
 from m3t.experiment import to_dict
 from m3t.experiment import fetch_runs
@@ -25,12 +26,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def tokens(shards_dir, body, tmp_path_factory):  # noqa: F811
-    """Tiny tokenizers + token shards over the tiny fitted shards."""
+    """Tiny tokenizers + token shards over the tiny fitted shards, and a tiny back-translation judge."""
     root = tmp_path_factory.mktemp("smlm-pipeline")
     params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
-        "data": data_section(shards_dir, root), "tokenizer_train": {"cache_dir": str(root / "cache")}})
+        "data": data_section(shards_dir, root), "tokenizer_train": {"cache_dir": str(root / "cache")},
+        "backtranslation_train": {"cache_dir": str(root / "cache-bt")}})
     run_train_tokenizers(params.tokenizer, params.tokenizer_train, body, params.data, progress=False)
     run_tokenize(params.data)
+    run_train_backtranslation(params.backtranslation, params.backtranslation_train, params.data, progress=False)
     return root
 
 
@@ -71,6 +74,11 @@ def test_smlm_flow_trains_generates_evaluates_and_tabulates(tokens, shards_dir, 
         poses = sorted((tmp_path / "gen" / "synthetic" / "pose").glob("*.pose"))
         assert poses and Pose.read(poses[0].read_bytes()).body.data.shape[2] == 543
     assert 0 <= summary["translation_bleu4"] <= 100
+    # every test clip is scored: none cut or unscorable here, and each back-translated by the judge
+    assert summary["clips_scored"] == len(test_ids) and summary["clips_unscorable"] == 0
+    judged = pd.read_csv(tmp_path / "metrics" / "smlm" / "backtranslation.csv")
+    assert list(judged["clip_id"]) == test_ids
+    assert 0 <= summary["bt/slt_bleu4"] <= 100 and summary["bt/slt/ASL-SYN/sentences"] == len(test_ids)
     records = fetch_runs(params.experiment, stage="evaluate-smlm")
     assert records and records[0].tags["variant"] == "production + translation"
     table = production_table(records)

@@ -34,7 +34,8 @@ HAND_POINTS = (
 FACE_MOTION_THRESHOLD_M = 1e-5
 
 
-def _subset(corr: Correspondence, names: list[str]) -> Correspondence:
+def subset_correspondence(corr: Correspondence, names: list[str] | tuple[str, ...]) -> Correspondence:
+    """The rows of ``corr`` for ``names``, in that order; a ``KeyError`` names the landmarks it lacks."""
     position = {n: i for i, n in enumerate(corr.names)}
     missing = [n for n in names if n not in position]
     if missing:
@@ -72,11 +73,11 @@ def face_vertices(body: BodyModel) -> np.ndarray:
 def metric_keypoints(body: BodyModel, landmark_set: str = "mediapipe_holistic") -> dict[str, Correspondence]:
     """``{"body": 12 points, "left_hand": 21, "right_hand": 21, "face": face vertices}`` for ``body``."""
     corr = body.correspondence(landmark_set)
-    pose = _subset(corr, [f"pose:{n}" for n in BODY_POINTS[1:]])
+    pose = subset_correspondence(corr, [f"pose:{n}" for n in BODY_POINTS[1:]])
     body_set = Correspondence(BODY_POINTS, np.concatenate([[1], pose.kind]), np.concatenate([[_neck_index(body)], pose.index]))
     out = {"body": body_set}
     for side in ("left_hand", "right_hand"):
-        hand = _subset(corr, [f"{side}:{n}" for n in HAND_POINTS])
+        hand = subset_correspondence(corr, [f"{side}:{n}" for n in HAND_POINTS])
         out[side] = Correspondence(HAND_POINTS, hand.kind, hand.index)
     for name, c in out.items():
         if not c.valid.all():

@@ -11,7 +11,8 @@ class SyntheticCorpusConfig:
     confusing_pairs: int = 4
     num_signers: int = 3
     sentences_per_language: int = 10
-    isolated_per_sign: int = 1  # isolated clips per sign and signer
+    isolated_per_sign: int = 2  # isolated clips per sign and signer (6 per sign with 3 signers: 4 / 1 / 1 split)
+    performance_jitter: float = 0.1  # per clip: speed and amplitude x U(1 -+ jitter), posture + ~1 deg
     languages: tuple[str, ...] = ("ASL-SYN", "DGS-SYN", "CSL-SYN")  # of synthetic_lexicon.LANGUAGES
     fps: float = 25.0
     min_glosses: int = 2

@@ -12,8 +12,15 @@ body model's own parameter space (it stands in for a real signer in front of a c
    non-manual = mouthing visemes + brows + eyes as facial-action curves. Two-handed signs mirror the
    dominant arm and hand with the project's one mirroring function.
 3. *Clips*: rest -> signs with smooth co-articulated transitions -> rest, per-signer identity (Anny
-   phenotypes), speed, amplitude and posture; isolated clips (one sign, ``label``) for recognition and
-   sentence clips for production; a camera per clip; train / dev / test splits.
+   phenotypes), speed, amplitude and posture, jittered per sentence and per isolated recording session
+   (``performance_jitter``: nobody signs the same sign twice alike; within a session both signs of a
+   confusing pair stay manually identical); isolated clips (one sign, ``label``) for recognition and sentence clips for
+   production; a camera per clip. Isolated clips and sentences draw from separate random streams, so growing
+   one part leaves the other unchanged.
+4. *Splits*: sentences cycle through :data:`SPLIT_CYCLE` (80 / 10 / 10); the isolated clips of each sign
+   through :data:`ISOLATED_SPLITS` (4 / 1 / 1, the cycle shifted by the sign's label so that the held-out
+   signer varies), so every sign with six clips (``num_signers * isolated_per_sign``) is in every split and
+   recognition is scored on every class.
 
 Rotations of the generator are rotation vectors applied on top of the template pose:
 ``R = exp(rotvec) @ R_rest`` (world-aligned axes, Anny's ``local-ref`` parameterisation).
@@ -51,6 +58,7 @@ from m3t.corpora.synthetic_lexicon import (
 )
 
 SPLIT_CYCLE = ("train", "dev", "test") + ("train",) * 7  # 80 / 10 / 10, every split non-empty from 3 clips
+ISOLATED_SPLITS = ("train", "train", "train", "train", "dev", "test")  # per sign: 4 / 1 / 1 of every 6 clips
 ARM = ("clavicle", "upperarm01", "lowerarm01", "wrist")
 
 
@@ -307,6 +315,15 @@ def _signers(cfg: SyntheticCorpusConfig, rng: np.random.Generator) -> list[Signe
                    float(rng.uniform(0.8, 1.2)), rng.normal(0, np.deg2rad(3), 3)) for i in range(cfg.num_signers)]
 
 
+def _performance(signer: Signer, rng: np.random.Generator, jitter: float) -> Signer:
+    """One performance of ``signer``: speed and amplitude scaled by up to +-``jitter``, posture moved by ~1 deg."""
+    if jitter <= 0:
+        return signer
+    return Signer(signer.id, signer.identity, signer.speed * float(rng.uniform(1 - jitter, 1 + jitter)),
+                  signer.amplitude * float(rng.uniform(1 - jitter, 1 + jitter)),
+                  signer.posture + rng.normal(0, np.deg2rad(1.0), 3))
+
+
 def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[SyntheticClip]:
     """All clips of the corpus (isolated signs first, then sentences per language), deterministic from the seed."""
     unknown = [lang for lang in cfg.languages if lang not in LANGUAGES]
@@ -318,29 +335,36 @@ def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[Synthet
     synth = Synthesiser(body, calibrate(body), cfg)
     clips: list[SyntheticClip] = []
 
-    def add(clip_id, signs, signer, language, text, label, extra, index):
-        clip = Clip(id=clip_id, corpus="synthetic", split=SPLIT_CYCLE[index % len(SPLIT_CYCLE)], language=language,
-                    signer=signer.id, text=text, gloss=" ".join(s.gloss for s in signs), media=f"motion/{clip_id}.npz",
-                    fps=cfg.fps, label=label, extra=tuple(extra))
-        clips.append(SyntheticClip(clip, synth.synthesise(signs, signer), signer.identity.astype(np.float32),
-                                   _camera(rng, cfg.image_size)))
+    def add(clip_id, signs, signer, performance, language, text, label, extra, split, part_rng):
+        clip = Clip(id=clip_id, corpus="synthetic", split=split, language=language, signer=signer.id, text=text,
+                    gloss=" ".join(s.gloss for s in signs), media=f"motion/{clip_id}.npz", fps=cfg.fps, label=label,
+                    extra=tuple(extra))
+        clips.append(SyntheticClip(clip, synth.synthesise(signs, performance), signer.identity.astype(np.float32),
+                                   _camera(part_rng, cfg.image_size)))
 
-    index = 0
+    isolated_rng, sentence_rng = np.random.default_rng([cfg.seed, 1]), np.random.default_rng([cfg.seed, 2])
+    # the rep-th isolated recording session of each signer: one performance for every sign, so the two signs
+    # of a confusing pair stay manually identical within a session
+    sessions = {(s.id, rep): _performance(s, isolated_rng, cfg.performance_jitter)
+                for rep in range(cfg.isolated_per_sign) for s in signers}
     for label, sign in enumerate(lexicon):
-        for k in range(cfg.isolated_per_sign):
+        k = 0
+        for rep in range(cfg.isolated_per_sign):
             for signer in signers:
                 extra = [("kind", "isolated"), ("group", sign.group), ("pair", str(sign.pair))]
-                add(f"iso-{sign.gloss.lower()}-{signer.id}-{k}", [sign], signer, "ISO-SYN", CONCEPTS[sign.gloss][1],
-                    label, extra, index)
-                index += 1
+                split = ISOLATED_SPLITS[(k + label) % len(ISOLATED_SPLITS)]
+                add(f"iso-{sign.gloss.lower()}-{signer.id}-{rep}", [sign], signer, sessions[(signer.id, rep)], "ISO-SYN",
+                    CONCEPTS[sign.gloss][1], label, extra, split, isolated_rng)
+                k += 1
     by_gloss = {s.gloss: s for s in lexicon}
     for language in cfg.languages:
         for i in range(cfg.sentences_per_language):
-            length = int(rng.integers(cfg.min_glosses, cfg.max_glosses + 1))
-            text, glosses = make_sentence(lexicon, language, length, rng)
-            signer = signers[int(rng.integers(len(signers)))]
-            add(f"{language.lower()}-{i:04d}", [by_gloss[g] for g in glosses], signer, language, text, None,
-                [("kind", "sentence")], i)
+            length = int(sentence_rng.integers(cfg.min_glosses, cfg.max_glosses + 1))
+            text, glosses = make_sentence(lexicon, language, length, sentence_rng)
+            signer = signers[int(sentence_rng.integers(len(signers)))]
+            performance = _performance(signer, sentence_rng, cfg.performance_jitter)
+            add(f"{language.lower()}-{i:04d}", [by_gloss[g] for g in glosses], signer, performance, language, text,
+                None, [("kind", "sentence")], SPLIT_CYCLE[i % len(SPLIT_CYCLE)], sentence_rng)
     return clips
 
 

@@ -8,8 +8,9 @@ posed with the same signer identity, so the error is the motion's alone. The poi
 
 A reference is posed once: :meth:`MotionScorer.reference` stores its points under the clip id, and every
 later :meth:`MotionScorer.score` of that clip reuses them (a checkpoint selection scores the same clips at
-every evaluation). An empty prediction (0 frames, e.g. a model that stopped at its first step) keeps its
-row without metrics: it is left out of the metric means and counted in ``empty_rate``.
+every evaluation). **No clip leaves a mean unseen**: an empty prediction (0 frames, e.g. a model that stopped
+at its first step) is scored as what a viewer of the avatar would see, one frame of the body model's rest
+pose, and counted in ``empty_rate`` (its row keeps ``frames == 0``).
 
 Axis legend: T frames (T1 predicted, T2 reference), D modality dim, K points of a region, P identity dim.
 """
@@ -43,7 +44,8 @@ class MotionPair:
 
 @dataclass(frozen=True)
 class ClipScore:
-    """``metrics``: the ``dtw_*`` entries of :func:`m3t.metrics.motion.evaluate_pairs`; empty for 0 frames."""
+    """``metrics``: the ``dtw_*`` entries of :func:`m3t.metrics.motion.evaluate_pairs` (of the rest pose for an
+    empty prediction, ``frames == 0``)."""
 
     clip_id: str
     group: str
@@ -53,10 +55,10 @@ class ClipScore:
 
 @dataclass(frozen=True)
 class MotionScores:
-    """Per-clip scores and their means (over the clips with frames), overall and per group."""
+    """Per-clip scores and their means over every clip, overall and per group."""
 
     per_clip: list[ClipScore]
-    overall: dict[str, float]  # metric -> mean; {} when every prediction is empty
+    overall: dict[str, float]  # metric -> mean; {} for no clips
     groups: dict[str, dict[str, float]]  # group -> metric -> mean, groups in first-seen order
     empty_rate: float  # fraction of clips with an empty prediction (0.0 for no clips)
 
@@ -102,20 +104,22 @@ class MotionScorer:
                            "params, identity) or give the pair its reference params")
         return self._references[pair.clip_id]
 
+    def rest_pose(self) -> dict[str, np.ndarray]:
+        """One frame of the body model's rest pose: how an empty prediction is scored."""
+        return {k: v.detach().cpu().numpy() for k, v in self.body.rest_params(1).items()}
+
     def score(self, pairs: Sequence[MotionPair], progress: bool = False) -> MotionScores:
         """Score every pair (order kept in ``per_clip``); a bad pair raises ``ValueError`` naming it."""
-        scored = [p for p in pairs if _frames(p.prediction) > 0]
-        results = iter(evaluate_pairs([(self.points(p.prediction, p.identity), self._reference_points(p))
-                                       for p in scored], progress, self.config))
-        per_clip = [ClipScore(p.clip_id, p.group, _frames(p.prediction),
-                              next(results) if _frames(p.prediction) > 0 else {}) for p in pairs]
-        kept = [c for c in per_clip if c.frames > 0]
+        shown = [p.prediction if _frames(p.prediction) > 0 else self.rest_pose() for p in pairs]
+        results = evaluate_pairs([(self.points(s, p.identity), self._reference_points(p)) for p, s in zip(pairs, shown)],
+                                 progress, self.config)
+        per_clip = [ClipScore(p.clip_id, p.group, _frames(p.prediction), r) for p, r in zip(pairs, results)]
         by_group: dict[str, list[dict[str, float]]] = defaultdict(list)
-        for clip in kept:
+        for clip in per_clip:
             by_group[clip.group].append(clip.metrics)
         return MotionScores(
             per_clip=per_clip,
-            overall=summarise([c.metrics for c in kept]) if kept else {},
+            overall=summarise([c.metrics for c in per_clip]) if per_clip else {},
             groups={group: summarise(metrics) for group, metrics in by_group.items()},
             empty_rate=float(np.mean([c.frames == 0 for c in per_clip])) if per_clip else 0.0,
         )

@@ -21,7 +21,7 @@ class DataConfig:
     train_corpora: tuple[str, ...] = ("synthetic",)
     shards_root: str = "data/shards"  # fit-corpus writes <shards_root>/<corpus>/{train,dev,test}.parquet
     tokens_root: str = "data/tokens"  # tokenize writes <tokens_root>/<corpus>/{train,dev,test}.parquet
-    models_dir: str = "models"  # <models_dir>/tokenizers, <models_dir>/smlm
+    models_dir: str = "models"  # <models_dir>/{tokenizers,smlm,slr,backtranslation}
     generated_dir: str = "data/generated"  # generate-smlm writes <generated_dir>/<corpora joined by '+'>
     metrics_dir: str = "metrics"  # evaluate-* write <metrics_dir>/<model>
 
@@ -53,6 +53,14 @@ class DataConfig:
     @property
     def smlm_dir(self) -> Path:
         return Path(self.models_dir) / "smlm"
+
+    @property
+    def slr_dir(self) -> Path:
+        return Path(self.models_dir) / "slr"
+
+    @property
+    def backtranslation_dir(self) -> Path:
+        return Path(self.models_dir) / "backtranslation"
 
     @property
     def generated(self) -> Path:

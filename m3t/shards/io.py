@@ -8,6 +8,7 @@ Axis legend: N clips in a shard, T frames, D_m per-frame dim of modality m, P id
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
@@ -274,3 +275,13 @@ def read_split(shards_dirs: list[Path] | Path, split: str, modalities=None) -> l
             seen[clip.clip.id] = path
             clips.append(clip)
     return clips
+
+
+def data_version(paths: list[Path]) -> str:
+    """Digest of the data files a model is trained on, by name and bytes (part of every trainer's resume key and
+    checkpoint)."""
+    h = hashlib.sha256()
+    for path in paths:
+        h.update(Path(path).name.encode())
+        h.update(hashlib.sha256(Path(path).read_bytes()).digest())
+    return h.hexdigest()[:16]

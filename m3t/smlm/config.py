@@ -14,6 +14,7 @@ class GenerateConfig:
     batch_size: int = 16
     render_clips: int = 2
     export_pose: bool = True
+    backtranslate: bool = True  # evaluate-smlm also scores the generated motion with the back-translation judge
 
 
 @dataclass(frozen=True)

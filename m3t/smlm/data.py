@@ -38,24 +38,37 @@ class Example:
     motion: np.ndarray  # (U, S) head-local codes
 
 
-def examples_from_shard(shard: TokenShard, vocab: SignVocabulary, max_text_tokens: int,
-                        max_motion_tokens: int) -> tuple[list[Example], list[dict[str, str]]]:
-    """Every usable clip of a token shard; the others are returned with their reason (never dropped silently)."""
+def examples_from_shard(shard: TokenShard, vocab: SignVocabulary, max_text_tokens: int, max_motion_tokens: int,
+                        cut: list[dict[str, str]] | None = None) -> tuple[list[Example], list[dict[str, str]]]:
+    """Every usable clip of a token shard; the others are returned with their reason (never dropped silently).
+
+    ``cut`` given (evaluation): a clip over the limits is kept, its text cut to ``max_text_tokens`` ids and its
+    motion tokens to ``max_motion_tokens`` steps, and recorded in ``cut`` with the reason, so an evaluation
+    scores every clip against its whole reference. Without it (training) such a clip is skipped."""
     examples, skipped = [], []
     for tc in shard.clips:
         clip = tc.clip
         try:
             vocab.check_language(clip.language)
-            ids = vocab.encode_text(clip.text, max_text_tokens)
             if tc.num_tokens == 0:
                 raise VocabularyError("no motion tokens")
+            over = []
+            text_tokens = len(vocab.encode_text(clip.text, 10 ** 9))
+            if text_tokens > max_text_tokens:
+                over.append(f"text of {text_tokens} tokens > smlm.max_text_tokens = {max_text_tokens}")
             if tc.num_tokens > max_motion_tokens:
-                raise VocabularyError(f"{tc.num_tokens} motion steps > smlm.max_motion_tokens = {max_motion_tokens}")
+                over.append(f"{tc.num_tokens} motion steps > smlm.max_motion_tokens = {max_motion_tokens}")
+            if over and cut is None:
+                raise VocabularyError("; ".join(over))
+            ids = vocab.encode_text(clip.text, max_text_tokens, truncate=True)
             motion = np.stack([np.asarray(tc.tokens[s], dtype=np.int64) for s in MOTION_STREAMS], axis=1)
         except (VocabularyError, KeyError) as exc:
             skipped.append({"clip_id": clip.id, "split": clip.split, "reason": str(exc)})
             continue
-        examples.append(Example(clip.id, clip.language, clip.text, np.asarray(ids, dtype=np.int64), motion))
+        if over:
+            cut.append({"clip_id": clip.id, "split": clip.split, "reason": "; ".join(over) + " (kept, cut to the limit)"})
+        examples.append(Example(clip.id, clip.language, clip.text, np.asarray(ids, dtype=np.int64),
+                                motion[:max_motion_tokens]))
     return examples, skipped
 
 

@@ -71,7 +71,7 @@ class SMLMEvaluator:
         for i in range(0, len(self.examples), self.batch_size):
             chunk = self.examples[i: i + self.batch_size]
             for example, g in zip(chunk, generate_motion(model, self.vocab, [e.text for e in chunk],
-                                                         [e.language for e in chunk])):
+                                                         [e.language for e in chunk], truncate_text=True)):
                 out[example.clip_id] = g
         return out
 
@@ -85,7 +85,7 @@ class SMLMEvaluator:
         if lost:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
         steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
-        # EOS at the first step leaves nothing to decode: an empty prediction, counted as a failed generation
+        # EOS at the first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted
         scores = self.scorer.score([
             MotionPair(e.clip_id, group_name(e, self.references[e.clip_id]),
                        self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {},

@@ -61,13 +61,15 @@ class _Stepper:
 
 @torch.no_grad()
 def generate_motion(model: SignMotionLM, vocab: SignVocabulary, texts: Sequence[str], languages: Sequence[str],
-                    max_steps: int | None = None, use_cache: bool = True, min_steps: int = 0) -> list[GeneratedMotion]:
-    """Text -> motion tokens for a batch of sentences (production); EOS is not allowed before ``min_steps``."""
+                    max_steps: int | None = None, use_cache: bool = True, min_steps: int = 0,
+                    truncate_text: bool = False) -> list[GeneratedMotion]:
+    """Text -> motion tokens for a batch of sentences (production); EOS is not allowed before ``min_steps``.
+    A sentence over ``smlm.max_text_tokens`` is refused, or (``truncate_text``, evaluations) cut to it."""
     _check_batch(texts, languages, vocab)
     max_steps = max_steps or model.cfg.max_motion_tokens
     model.eval()
     device = next(model.parameters()).device
-    sources = [text_source(vocab, np.asarray(vocab.encode_text(t, model.cfg.max_text_tokens)), lang)
+    sources = [text_source(vocab, np.asarray(vocab.encode_text(t, model.cfg.max_text_tokens, truncate_text)), lang)
                for t, lang in zip(texts, languages)]
     src, src_mask = (t.to(device) for t in pad_sequences(sources, vocab.pad_id))
     step = model.embed_fused(torch.from_numpy(np.stack([prompt_step(vocab, lang) for lang in languages]))[:, None].to(device))

@@ -9,8 +9,13 @@ fitted shards of ``data.train_corpora`` (trained jointly; checkpoint selected on
   ground-truth motion tokens -> text; writes ``generated.parquet``, ``translations.jsonl``,
   ``pose/<clip>.pose`` and ``renders/<clip>.gif`` into ``data.generated``.
 - :func:`evaluate_and_log`: scores what generation wrote (no model run): DTW metrics through the one motion
-  scorer, BLEU-4 / ROUGE-L of the translations; ``<metrics>/smlm/metrics.json`` + ``per_clip.csv``; the MLflow
-  run is tagged with the training variant so ``m3t smlm-table`` can print Tab. 1.
+  scorer, BLEU-4 / ROUGE-L of the SMLM's own translations, and (``smlm_generate.backtranslate``) the
+  generated motion of every sentence clip through the frozen back-translation judge (``bt/slt/...``, SL-T
+  definition: M3T Tab. 2); ``<metrics>/smlm/metrics.json``, ``per_clip.csv``, ``backtranslation.csv``; the
+  MLflow run is tagged with the training variant so ``m3t smlm-table`` / ``m3t bt-table`` print Tab. 1 / 2.
+  Every clip of the split is scored: one over the model's text / motion limits is cut to them and kept
+  (``clips_cut``), an empty generation is scored as the rest pose (``empty_rate``) and back-translates to the
+  empty sentence; only clips the vocabulary cannot take at all are left out (``clips_unscorable``).
 """
 from __future__ import annotations
 
@@ -19,13 +24,19 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from m3t.atomic import copy_file, write_json, write_jsonl, write_text
+from m3t.backtranslation.config import BackTranslationConfig
+from m3t.backtranslation.data import skip_reason
+from m3t.backtranslation.pipeline import BackTranslationReport, backtranslate, per_clip_csv
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.metrics.text import SLT_DEFINITION
 from m3t.runtime import DistributedContext, distributed_context
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import read_split
+from m3t.shards.io import data_version, read_split
 from m3t.shards.schema import FittedClip
 from m3t.shards.tokens import (
     TokenClip,
@@ -41,7 +52,6 @@ from m3t.smlm.evaluate import EvaluationReport, SMLMEvaluator
 from m3t.smlm.generate import GeneratedMotion
 from m3t.smlm.train import run_key, train_smlm
 from m3t.smlm.vocab import SignVocabulary, build_vocabulary
-from m3t.tokenizers.pipeline import data_version
 from m3t.tokenizers.tokenize import load_tokenizers
 
 
@@ -73,10 +83,12 @@ def vocabulary_for(model_cfg: SMLMConfig, train: list[TokenShard]) -> SignVocabu
 
 
 def split_examples(shards: list[TokenShard], vocab: SignVocabulary, model_cfg: SMLMConfig,
-                   skipped: list[dict]) -> list[Example]:
+                   skipped: list[dict], cut: list[dict] | None = None) -> list[Example]:
+    """The examples of ``shards``; unusable clips go to ``skipped``; with ``cut`` (evaluation) clips over the
+    model's limits are kept, cut to them, and listed there."""
     examples = []
     for shard in shards:
-        found, lost = examples_from_shard(shard, vocab, model_cfg.max_text_tokens, model_cfg.max_motion_tokens)
+        found, lost = examples_from_shard(shard, vocab, model_cfg.max_text_tokens, model_cfg.max_motion_tokens, cut)
         examples.extend(found)
         skipped.extend(lost)
     return examples
@@ -139,17 +151,19 @@ class GenerationSetup:
     loaded: LoadedSMLM  # the checkpoint: model, vocabulary, training settings
     evaluator: SMLMEvaluator  # the split's clips, their references and the frozen tokenizers
     info: TokenInfo  # the tokenizers' streams, codebook sizes and downsampling
-    skipped: list[dict]  # clips of the split the vocabulary cannot take, with reasons
+    skipped: list[dict]  # clips of the split the vocabulary cannot take (no language prompt, no text), with reasons
+    cut: list[dict]  # clips over the model's text / motion limits: kept, cut to them, scored against the whole reference
 
 
 def evaluator_for(cfg: GenerateConfig, data: DataConfig, body: BodyModel, device: str = "cpu") -> GenerationSetup:
     loaded = load_smlm(data.smlm_dir / "smlm.pt", device)
     tokenizers, info = load_tokenizers(data.tokenizers_dir)
     skipped: list[dict] = []
-    examples = split_examples(load_tokens(data, cfg.split), loaded.vocab, loaded.model.cfg, skipped)
+    cut: list[dict] = []
+    examples = split_examples(load_tokens(data, cfg.split), loaded.vocab, loaded.model.cfg, skipped, cut)
     evaluator = SMLMEvaluator(body, tokenizers, loaded.vocab, examples, references(data, cfg.split),
                               batch_size=cfg.batch_size)
-    return GenerationSetup(loaded, evaluator, info, skipped)
+    return GenerationSetup(loaded, evaluator, info, skipped, cut)
 
 
 def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progress: bool = True) -> dict[str, float]:
@@ -159,7 +173,7 @@ def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progres
     from m3t.render.reconstruction import render_reconstruction
 
     setup = evaluator_for(cfg, data, body)
-    loaded, evaluator, info, skipped = setup.loaded, setup.evaluator, setup.info, setup.skipped
+    loaded, evaluator, info, skipped = setup.loaded, setup.evaluator, setup.info, setup.skipped + setup.cut
     out = data.generated
     out.mkdir(parents=True, exist_ok=True)
     generated = evaluator.generate(loaded.model)
@@ -199,7 +213,9 @@ def variant_name(train_config: dict) -> str:
     return "production + translation" if train_config.get("translation_objective", True) else "production only"
 
 
-def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel) -> tuple[EvaluationReport, dict]:
+def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
+                 judge: BackTranslationConfig | None = None) -> tuple[EvaluationReport, dict]:
+    """``judge``: the back-translation decoding settings (beam, length penalty; defaults when None)."""
     import pandas as pd
 
     setup = evaluator_for(cfg, data, body)
@@ -222,6 +238,16 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel) -> tupl
             raise ValueError(f"{text_path}, line {line_no}: not a translation record ({exc}); rerun generate-smlm") from exc
     report = evaluator.score(generated, translations)
     metrics_dir = data.metrics("smlm")
+    # every clip of the split is scored: clips over the model's limits were cut and kept; only clips the
+    # vocabulary cannot take at all (a language without prompts, no text) are left out, and counted here
+    report.summary.update({"clips_scored": float(len(evaluator.examples)), "clips_cut": float(len(setup.cut)),
+                           "clips_unscorable": float(len(setup.skipped))})
+    if cfg.backtranslate:
+        judged = backtranslate_generated(evaluator, generated, data, body, judge or BackTranslationConfig())
+        report.summary["bt/clips"] = float(0 if judged is None else len(judged.per_clip))
+        if judged is not None:  # None: the split has no sentence clip (isolated signs only)
+            report.summary.update({f"bt/{k}": v for k, v in judged.summary.items()})
+            write_text(metrics_dir / "backtranslation.csv", per_clip_csv(judged.per_clip))
     write_json(metrics_dir / "metrics.json", report.summary)
     buffer = io.StringIO()
     pd.DataFrame(report.per_clip).to_csv(buffer, index=False)
@@ -229,16 +255,38 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel) -> tupl
     return report, loaded.train_config
 
 
-def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig,
-                     experiment: ExperimentConfig) -> dict[str, float]:
-    report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg))
+def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, GeneratedMotion], data: DataConfig,
+                            body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
+    """The generated motion of every sentence clip (decoded by the frozen tokenizers) through the frozen
+    back-translation judge of its language (definition "slt"); an empty generation is the empty sentence.
+    Isolated signs are left to the recognition probe; None when the split has no sentence clip."""
+    empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
+    clips, texts = {}, {}
+    for e in evaluator.examples:
+        ref = evaluator.references[e.clip_id]
+        if skip_reason(ref.clip, ref.num_frames) is not None:
+            continue
+        g = generated[e.clip_id]
+        clips[e.clip_id] = (e.language, evaluator.motion_params(g) if len(g.tokens["body"]) else empty)
+        texts[e.clip_id] = ref.clip.text
+    if not clips:
+        return None
+    return backtranslate(data.backtranslation_dir, clips, texts, judge.beam_size, judge.length_penalty)
+
+
+def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, experiment: ExperimentConfig,
+                     judge: BackTranslationConfig | None = None) -> dict[str, float]:
+    report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg), judge)
     tags = {"variant": variant_name(train_config), "split": cfg.split,
             "translation_objective": str(train_config.get("translation_objective", True))}
+    if cfg.backtranslate:
+        tags["text_metric_definition"] = SLT_DEFINITION
     with start_run(experiment, "evaluate-smlm", tags=tags) as run:
         run.log_params({f"smlm_train.{k}": v for k, v in train_config.items()})
         run.log_metrics({k: v for k, v in report.summary.items() if v == v and abs(v) != float("inf")})
-        for name in ("metrics.json", "per_clip.csv"):
-            run.log_artifact(data.metrics("smlm") / name)
+        for name in ("metrics.json", "per_clip.csv", "backtranslation.csv"):
+            if (data.metrics("smlm") / name).exists():
+                run.log_artifact(data.metrics("smlm") / name)
         for gif in sorted((data.generated / "renders").glob("*.gif")):
             run.log_artifact(gif, "renders")
     return report.summary

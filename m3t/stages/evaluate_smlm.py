@@ -1,5 +1,6 @@
 """evaluate-smlm: generated motion + translations -> M3T Tab. 1 metrics (DTW-JPE / DTW-PA-JPE, face DTW-VPE,
-BLEU-4 / ROUGE-L) in ``<metrics>/smlm``, logged to MLflow (:func:`m3t.smlm.pipeline.evaluate_and_log`).
+BLEU-4 / ROUGE-L) and the back-translation of the generated motion (Tab. 2, SL-T definition) in
+``<metrics>/smlm``, logged to MLflow (:func:`m3t.smlm.pipeline.evaluate_and_log`).
 """
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from m3t.stages import stage_main
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return stage_main(__doc__, lambda p, args: evaluate_and_log(p.smlm_generate, p.data, p.body, p.experiment),
+    return stage_main(__doc__, lambda p, args: evaluate_and_log(p.smlm_generate, p.data, p.body, p.experiment,
+                                                                p.backtranslation),
                       argv, show=lambda summary: {k: v for k, v in summary.items() if "/" not in k})
 
 

@@ -9,7 +9,6 @@ test-split VPE / PA-VPE (the Tab. 3 columns). Writes ``<models>/tokenizers/<grou
 """
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Callable
 
@@ -23,7 +22,7 @@ from m3t.experiment import ExperimentConfig, section_params
 from m3t.metrics.codebook import codebook_stats, plot_token_histogram, token_counts
 from m3t.runtime import DistributedContext
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import read_shard, read_split
+from m3t.shards.io import data_version, read_shard, read_split
 from m3t.shards.schema import FittedClip
 from m3t.tokenizers.checkpoint import load_tokenizer
 from m3t.tokenizers.data import (
@@ -36,15 +35,6 @@ from m3t.tokenizers.data import (
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import TrainResult, train_tokenizer
-
-
-def data_version(paths: list[Path]) -> str:
-    """Digest of the files a model is trained on (part of the resume key and the checkpoint)."""
-    h = hashlib.sha256()
-    for path in paths:
-        h.update(Path(path).name.encode())
-        h.update(hashlib.sha256(Path(path).read_bytes()).digest())
-    return h.hexdigest()[:16]
 
 
 def usable_sequences(group: str, clips: list[FittedClip], rejected: list[dict]) -> list[np.ndarray]:

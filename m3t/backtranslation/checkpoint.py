@@ -1,0 +1,81 @@
+"""Self-describing back-translation checkpoints, one per sign language: ``{format, language, config, dims, input,
+text, text_vocabulary, gloss_vocabulary, gloss_source, state_dict, epoch, step, data_version, metrics,
+train_config[, train_state]}``. Model, vocabularies, tokenisation rule and input layout are rebuilt from the file
+alone, loaded with ``weights_only=True``; ``train_state`` is only in the resumable ``last`` checkpoint.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from m3t.backtranslation.config import BackTranslationConfig
+from m3t.backtranslation.data import InputSpec
+from m3t.backtranslation.model import BackTranslationDims, SignToText
+from m3t.backtranslation.text import TextProcessor, Vocabulary
+from m3t.training import read_checkpoint, save_checkpoint
+
+FORMAT = "m3t-backtranslation-v1"
+STAGE = "train-backtranslation"
+
+
+@dataclass(frozen=True)
+class LoadedBackTranslation:
+    model: SignToText
+    language: str
+    spec: InputSpec
+    processor: TextProcessor
+    text_vocab: Vocabulary
+    gloss_vocab: Vocabulary | None
+    gloss_source: str
+    epoch: int
+    step: int
+    data_version: str
+    metrics: dict[str, float]
+    train_config: dict
+    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
+
+
+def save_backtranslation(path: str | os.PathLike, model: SignToText, language: str, spec: InputSpec,
+                         processor: TextProcessor, text_vocab: Vocabulary, gloss_vocab: Vocabulary | None,
+                         gloss_source: str, epoch: int, step: int, data_version: str, metrics: dict[str, float],
+                         train_config: dict | None = None, train_state: dict[str, Any] | None = None) -> Path:
+    payload = {
+        "format": FORMAT,
+        "language": language,
+        "config": dataclasses.asdict(model.cfg),
+        "dims": dataclasses.asdict(model.dims),
+        "input": spec.to_dict(),
+        "text": dataclasses.asdict(processor),
+        "text_vocabulary": text_vocab.to_dict(),
+        "gloss_vocabulary": None if gloss_vocab is None else gloss_vocab.to_dict(),
+        "gloss_source": gloss_source,
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "epoch": int(epoch),
+        "step": int(step),
+        "data_version": data_version,
+        "metrics": {k: float(v) for k, v in metrics.items()},
+        "train_config": dict(train_config or {}),
+    }
+    if train_state is not None:
+        payload["train_state"] = train_state
+    return save_checkpoint(path, payload)
+
+
+def load_backtranslation(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedBackTranslation:
+    payload = read_checkpoint(path, FORMAT, "back-translation", STAGE, device)
+    raw = dict(payload["config"])
+    raw["languages"] = tuple(raw.get("languages", ()))
+    model = SignToText(BackTranslationConfig(**raw), BackTranslationDims(**payload["dims"]))
+    model.load_state_dict(payload["state_dict"])
+    model.to(device).eval()
+    gloss = payload["gloss_vocabulary"]
+    return LoadedBackTranslation(
+        model, payload["language"], InputSpec.from_dict(payload["input"]), TextProcessor(**payload["text"]),
+        Vocabulary.from_dict(payload["text_vocabulary"]), None if gloss is None else Vocabulary.from_dict(gloss),
+        payload["gloss_source"], payload["epoch"], payload["step"], payload["data_version"],
+        dict(payload["metrics"]), dict(payload.get("train_config", {})), payload.get("train_state"))

@@ -1,0 +1,55 @@
+"""M3T Tab. 2 from MLflow: back-translation of the ground-truth motion (the upper bound, newest finished
+``evaluate-backtranslation`` run) and of each production model's generated motion (newest finished
+``evaluate-smlm`` run of each training variant: without / with the translation objective), ROUGE-L and
+BLEU-4 per sign language, in the SL-T definition (lower-cased whitespace tokens, unsmoothed BLEU, ROUGE-L
+beta 1.2, Chinese per character; :mod:`m3t.metrics.text`). Any future production model's evaluation that
+logs the same ``bt/slt/<language>/...`` metrics gets a row.
+"""
+from __future__ import annotations
+
+import math
+
+from m3t.experiment import RunRecord
+from m3t.metrics.text import SLT_DEFINITION
+
+GT_ROW = "GT motion (upper bound)"
+VARIANT_ORDER = ("production only", "production + translation")
+
+
+def _newest(records: list[RunRecord], key) -> dict[str, RunRecord]:
+    out: dict[str, RunRecord] = {}
+    for record in records:  # newest first
+        if record.status == "FINISHED":
+            out.setdefault(key(record), record)
+    return out
+
+
+def _cell(value: float | None) -> str:
+    return "-" if value is None or math.isnan(value) else f"{value:.2f}"
+
+
+def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRecord]) -> str:
+    """Markdown: one row for the ground truth, one per production variant; ``R`` / ``B4`` per language."""
+    rows: list[tuple[str, dict[str, float]]] = []
+    gt = _newest(ground_truth, lambda r: "gt")
+    if gt:
+        rows.append((GT_ROW, {k.removeprefix(f"{SLT_DEFINITION}/"): v for k, v in gt["gt"].metrics.items()}))
+    variants = _newest([r for r in production if any(k.startswith("bt/") for k in r.metrics)],
+                       lambda r: r.tags.get("variant", r.run_id[:8]))
+    order = {v: i for i, v in enumerate(VARIANT_ORDER)}
+    for name, record in sorted(variants.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])):
+        prefix = f"bt/{SLT_DEFINITION}/"
+        rows.append((f"SMLM, {name}", {k.removeprefix(prefix): v for k, v in record.metrics.items()
+                                       if k.startswith(prefix)}))
+    if not rows:
+        return ("no finished evaluate-backtranslation / evaluate-smlm runs with back-translation yet: "
+                "run `dvc repro evaluate-smlm`")
+    languages = sorted({k.split("/")[0] for _, m in rows for k in m if k.endswith("/bleu4")})
+    header = "| motion | " + " | ".join(f"{lang} R | {lang} B4" for lang in languages) + " |"
+    lines = [f"Back-translation (text metrics: definition {SLT_DEFINITION!r}, SL-T: lower-cased whitespace tokens, "
+             "BLEU-4 unsmoothed, ROUGE-L beta 1.2, Chinese per character)", "", header,
+             "|" + "---|" * (1 + 2 * len(languages))]
+    for name, metrics in rows:
+        cells = [f"{_cell(metrics.get(f'{lang}/rouge_l'))} | {_cell(metrics.get(f'{lang}/bleu4'))}" for lang in languages]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

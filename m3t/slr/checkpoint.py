@@ -1,0 +1,96 @@
+"""Self-describing probe checkpoints: ``{format, variant, config, dims, classes, class_names, tokenizers,
+state_dict, epoch, step, data_version, metrics, train_config[, train_state]}``, loaded with ``weights_only=True``.
+
+``config`` is the ``slr`` section the probe was trained with, trimming included (evaluation trims the same
+way); ``dims`` holds the encoder width, the number of classes and the streams read; ``classes`` / ``class_names``
+map output index -> corpus label id / gloss; ``tokenizers`` holds the digests of the frozen tokenizer files
+whose features the probe was trained on (evaluation refuses other tokenizers). ``train_state`` (optimizer,
+scheduler, RNG, history) is present only in the resumable ``last`` checkpoint.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from m3t.slr.config import SLRConfig, TrimConfig
+from m3t.slr.model import ProbeDims, SLRProbe
+from m3t.training import read_checkpoint, save_checkpoint
+
+FORMAT = "m3t-slr-v1"
+
+
+@dataclass(frozen=True)
+class ProbeMeta:
+    """What a probe's outputs mean and which inputs it expects, beyond its config and dims."""
+
+    variant: str  # full | no_face
+    classes: tuple[int, ...]  # output index -> corpus label id
+    class_names: tuple[str, ...]  # output index -> gloss
+    tokenizers: dict[str, str]  # tokenizer group -> digest of the frozen checkpoint file
+
+
+@dataclass(frozen=True)
+class LoadedSLR:
+    model: SLRProbe
+    meta: ProbeMeta
+    epoch: int
+    step: int
+    data_version: str
+    metrics: dict[str, float]
+    train_config: dict
+    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def save_slr(path: str | os.PathLike, model: SLRProbe, meta: ProbeMeta, epoch: int, step: int, data_version: str,
+             metrics: dict[str, float], train_config: dict | None = None,
+             train_state: dict[str, Any] | None = None) -> Path:
+    payload = {
+        "format": FORMAT,
+        "variant": meta.variant,
+        "config": _plain(dataclasses.asdict(model.cfg)),
+        "dims": _plain(dataclasses.asdict(model.dims)),
+        "classes": [int(c) for c in meta.classes],
+        "class_names": [str(n) for n in meta.class_names],
+        "tokenizers": dict(meta.tokenizers),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "epoch": int(epoch),
+        "step": int(step),
+        "data_version": data_version,
+        "metrics": {k: float(v) for k, v in metrics.items()},
+        "train_config": _plain(dict(train_config or {})),
+    }
+    if train_state is not None:
+        payload["train_state"] = train_state
+    return save_checkpoint(path, payload)
+
+
+def config_from_dict(raw: dict) -> SLRConfig:
+    raw = dict(raw)
+    raw["trim"] = TrimConfig(**raw.get("trim", {}))
+    return SLRConfig(**raw)
+
+
+def load_slr(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSLR:
+    payload = read_checkpoint(path, FORMAT, "SLR probe", "train-slr", device)
+    dims = payload["dims"]
+    model = SLRProbe(config_from_dict(payload["config"]),
+                     ProbeDims(int(dims["width"]), int(dims["num_classes"]), tuple(dims["streams"])))
+    model.load_state_dict(payload["state_dict"])
+    model.to(device).eval()
+    meta = ProbeMeta(payload["variant"], tuple(payload["classes"]), tuple(payload["class_names"]),
+                     dict(payload["tokenizers"]))
+    return LoadedSLR(model, meta, payload["epoch"], payload["step"], payload["data_version"], dict(payload["metrics"]),
+                     dict(payload.get("train_config", {})), payload.get("train_state"))
