@@ -13,6 +13,8 @@ A trainer's loop, with ``tail = EpochTail(...)`` (and ``tail.resume(state)`` whe
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import random
@@ -75,6 +77,30 @@ def optimizer_step(loss: torch.Tensor, model: torch.nn.Module, optim: torch.opti
 
 
 # ---- checkpoint files and RNG state ---------------------------------------------------------------------
+def run_digest(*parts: Any) -> str:
+    """16-hex digest naming a resumable run: what its ``last`` checkpoint must agree on to be continued (the
+    trainer's version string, model and training settings, vocabularies, data version). ``parts`` are
+    JSON-dumped with sorted keys; bytes count by their SHA-256, anything else unknown to JSON by ``str``."""
+    digest = lambda v: hashlib.sha256(v).hexdigest() if isinstance(v, bytes) else str(v)  # noqa: E731
+    text = json.dumps(list(parts), sort_keys=True, default=digest)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def checkpoint_payload(fmt: str, model: torch.nn.Module, epoch: int, step: int, data_version: str,
+                       metrics: dict[str, float], train_config: dict | None = None,
+                       train_state: dict[str, Any] | None = None, **described: Any) -> dict[str, Any]:
+    """The fields every self-describing checkpoint has: ``format``, what rebuilds the model (``described``:
+    config, dims, vocabularies, ...), the weights on the CPU, ``epoch``, ``step``, ``data_version``,
+    ``metrics``, ``train_config`` and, in a resumable ``last`` only, ``train_state``."""
+    payload = {"format": fmt, **described,
+               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+               "epoch": int(epoch), "step": int(step), "data_version": data_version,
+               "metrics": {k: float(v) for k, v in metrics.items()}, "train_config": dict(train_config or {})}
+    if train_state is not None:
+        payload["train_state"] = train_state
+    return payload
+
+
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     """``torch.save`` of a checkpoint payload, atomically (a reader never sees half a file). Saved through a
     file handle: given a path, ``torch.save`` names the zip archive after the (random) temporary file, so
@@ -187,6 +213,18 @@ class EpochTail:
         set_rng_state(state["rng"])
         self.epoch, self.step, self.best_score = state["epoch"], state["step"], state["best_score"]
         self.history, self.best = list(state["history"]), dict(state["best"])
+
+    def resume_saved(self, model: torch.nn.Module, load: Callable[[Path], Any], what: str) -> int:
+        """Continue from the ``last`` checkpoint when one exists: ``load(path)`` gives an object with ``model``
+        and ``train_state`` (a trainer's checkpoint reader); returns the epoch training resumes at (0: none)."""
+        if self.last_path is None or not self.last_path.exists():
+            return self.epoch
+        loaded = load(self.last_path)
+        if loaded.train_state is None:
+            raise ValueError(f"{self.last_path} has no training state; delete it to train {what} afresh")
+        model.load_state_dict(loaded.model.state_dict())
+        self.resume(loaded.train_state)
+        return self.epoch
 
     def end_epoch(self, epoch: int, train_means: dict[str, float], bar: Any = None) -> dict[str, float] | None:
         """Close epoch ``epoch`` (0-based); returns its record on rank 0, None on the others. ``bar``: a

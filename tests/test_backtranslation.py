@@ -274,3 +274,25 @@ def test_bf16_autocast_trains_on_cpu(spec, tmp_path):
     cfg = dataclasses.replace(FAST, epochs=1, precision="bf16")
     result = train_backtranslation(TINY, cfg, corpus, spec, "v", tmp_path / "bf16.pt", progress=False)
     assert np.isfinite(result.history[-1]["train_loss"]) and result.best["epoch"] == 1  # no dev: the last epoch
+
+
+def test_bt_table_rows_ground_truth_then_variants_and_names_its_definition():
+    from m3t.backtranslation.table import GT_ROW, backtranslation_table
+    from m3t.experiment import RunRecord
+
+    def run(stage, metrics, status="FINISHED", variant=None, start=0):
+        return RunRecord(f"r{start}", stage, start, status, {}, metrics, None, {"variant": variant} if variant else {})
+
+    gt = [run("evaluate-backtranslation", {"slt/ASL/bleu4": 11.5, "slt/ASL/rouge_l": 30.0, "slt/CSL/bleu4": 7.0,
+                                           "slt/CSL/rouge_l": 27.0})]
+    smlm = [run("evaluate-smlm", {"bt/slt/ASL/bleu4": 9.0, "bt/slt/ASL/rouge_l": 25.0}, variant="production + translation", start=3),
+            run("evaluate-smlm", {"bt/slt/ASL/bleu4": 1.0}, variant="production + translation", start=2),  # older
+            run("evaluate-smlm", {"bt/slt/ASL/bleu4": 5.0, "bt/slt/ASL/rouge_l": 20.0}, variant="production only", start=1),
+            run("evaluate-smlm", {"dtw_jpe_body_m": 1.0}, variant="no judge", start=0)]  # no bt/ metrics: no row
+    table = backtranslation_table(gt, smlm)
+    assert "definition 'slt'" in table and "beta 1.2" in table
+    rows = [line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| motion |")]
+    assert [r.split(" | ")[0].strip("| ") for r in rows] == [GT_ROW, "SMLM, production only", "SMLM, production + translation"]
+    assert rows[0].split(" | ")[1:] == ["30.00", "11.50", "27.00", "7.00 |"]
+    assert rows[2].split(" | ")[1:3] == ["25.00", "9.00"] and rows[2].endswith("- | - |")  # newest run; no CSL
+    assert "no finished" in backtranslation_table([], [])

@@ -17,7 +17,7 @@ from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.data import InputSpec
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.backtranslation.text import TextProcessor, Vocabulary
-from m3t.training import read_checkpoint, save_checkpoint
+from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-backtranslation-v1"
 STAGE = "train-backtranslation"
@@ -44,26 +44,17 @@ def save_backtranslation(path: str | os.PathLike, model: SignToText, language: s
                          processor: TextProcessor, text_vocab: Vocabulary, gloss_vocab: Vocabulary | None,
                          gloss_source: str, epoch: int, step: int, data_version: str, metrics: dict[str, float],
                          train_config: dict | None = None, train_state: dict[str, Any] | None = None) -> Path:
-    payload = {
-        "format": FORMAT,
-        "language": language,
-        "config": dataclasses.asdict(model.cfg),
-        "dims": dataclasses.asdict(model.dims),
-        "input": spec.to_dict(),
-        "text": dataclasses.asdict(processor),
-        "text_vocabulary": text_vocab.to_dict(),
-        "gloss_vocabulary": None if gloss_vocab is None else gloss_vocab.to_dict(),
-        "gloss_source": gloss_source,
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "epoch": int(epoch),
-        "step": int(step),
-        "data_version": data_version,
-        "metrics": {k: float(v) for k, v in metrics.items()},
-        "train_config": dict(train_config or {}),
-    }
-    if train_state is not None:
-        payload["train_state"] = train_state
-    return save_checkpoint(path, payload)
+    return save_checkpoint(path, checkpoint_payload(
+        FORMAT, model, epoch, step, data_version, metrics, dict(train_config or {}), train_state,
+        language=language,
+        config=dataclasses.asdict(model.cfg),
+        dims=dataclasses.asdict(model.dims),
+        input=spec.to_dict(),
+        text=dataclasses.asdict(processor),
+        text_vocabulary=text_vocab.to_dict(),
+        gloss_vocabulary=None if gloss_vocab is None else gloss_vocab.to_dict(),
+        gloss_source=gloss_source,
+    ))
 
 
 def load_backtranslation(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedBackTranslation:

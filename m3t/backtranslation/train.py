@@ -15,8 +15,6 @@ Axis legend: B batch, T frames, K text tokens, G gloss classes.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -40,7 +38,7 @@ from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.metrics.text import slt_translation_metrics
 from m3t.runtime import autocast, choose_device
-from m3t.training import EpochTail, Selection, optimizer_step
+from m3t.training import EpochTail, Selection, optimizer_step, run_digest
 
 TRAIN_VERSION = "backtranslation-v1"  # part of the resume key: bump when older training state becomes invalid
 DECODE_ONLY = ("beam_size", "length_penalty", "languages")  # model-section keys a trained model does not depend on
@@ -118,9 +116,8 @@ def run_key(model_cfg: BackTranslationConfig, cfg: BackTranslationTrainConfig, c
     model = {k: v for k, v in dataclasses.asdict(model_cfg).items() if k not in DECODE_ONLY}
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
     gloss = None if corpus.gloss_vocab is None else corpus.gloss_vocab.to_dict()
-    text = json.dumps([TRAIN_VERSION, corpus.language, model, settings, corpus.text_vocab.to_dict(), gloss,
-                       spec.to_dict(), data_version], sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return run_digest(TRAIN_VERSION, corpus.language, model, settings, corpus.text_vocab.to_dict(), gloss,
+                            spec.to_dict(), data_version)
 
 
 def train_backtranslation(
@@ -163,13 +160,8 @@ def train_backtranslation(
             path, model, corpus.language, spec, corpus.processor, corpus.text_vocab, corpus.gloss_vocab,
             corpus.gloss_source, epoch, step, data_version, record, settings, state),
         best_path=best_path, last_path=last_path, evaluate=evaluate if corpus.dev else None, on_epoch=on_epoch)
-    if last_path is not None and Path(last_path).exists():  # resume: continue the same curve
-        loaded = load_backtranslation(last_path, device)
-        if loaded.train_state is None:
-            raise ValueError(f"{last_path} has no training state; delete it to train {corpus.language!r} afresh")
-        model.load_state_dict(loaded.model.state_dict())
-        tail.resume(loaded.train_state)
-    resumed_from_epoch = tail.epoch
+    resumed_from_epoch = tail.resume_saved(model, lambda p: load_backtranslation(p, device),
+                                           f"the {corpus.language!r} judge")
     bar = tqdm(tail.remaining(stop_after_epochs), desc=f"backtranslation {corpus.language}", unit="epoch",
                disable=not progress)
     for epoch in bar:

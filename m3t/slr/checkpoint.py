@@ -19,7 +19,7 @@ import torch
 
 from m3t.slr.config import SLRConfig, TrimConfig
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import read_checkpoint, save_checkpoint
+from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-slr-v1"
 
@@ -57,24 +57,15 @@ def _plain(value: Any) -> Any:
 def save_slr(path: str | os.PathLike, model: SLRProbe, meta: ProbeMeta, epoch: int, step: int, data_version: str,
              metrics: dict[str, float], train_config: dict | None = None,
              train_state: dict[str, Any] | None = None) -> Path:
-    payload = {
-        "format": FORMAT,
-        "variant": meta.variant,
-        "config": _plain(dataclasses.asdict(model.cfg)),
-        "dims": _plain(dataclasses.asdict(model.dims)),
-        "classes": [int(c) for c in meta.classes],
-        "class_names": [str(n) for n in meta.class_names],
-        "tokenizers": dict(meta.tokenizers),
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "epoch": int(epoch),
-        "step": int(step),
-        "data_version": data_version,
-        "metrics": {k: float(v) for k, v in metrics.items()},
-        "train_config": _plain(dict(train_config or {})),
-    }
-    if train_state is not None:
-        payload["train_state"] = train_state
-    return save_checkpoint(path, payload)
+    return save_checkpoint(path, checkpoint_payload(
+        FORMAT, model, epoch, step, data_version, metrics, _plain(dict(train_config or {})), train_state,
+        variant=meta.variant,
+        config=_plain(dataclasses.asdict(model.cfg)),
+        dims=_plain(dataclasses.asdict(model.dims)),
+        classes=[int(c) for c in meta.classes],
+        class_names=[str(n) for n in meta.class_names],
+        tokenizers=dict(meta.tokenizers),
+    ))
 
 
 def config_from_dict(raw: dict) -> SLRConfig:

@@ -11,8 +11,6 @@ Axis legend: B batch, N token steps, W width, C classes.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +25,7 @@ from m3t.slr.config import SLRConfig, SLRTrainConfig
 from m3t.slr.evaluate import topk_hits
 from m3t.slr.features import Example, variant_streams
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import EpochTail, Selection, optimizer_step, warmup_cosine
+from m3t.training import EpochTail, Selection, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "slr-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -98,9 +96,8 @@ def run_key(cfg: SLRConfig, train_cfg: SLRTrainConfig, dims: ProbeDims, meta: Pr
     """What a resumable ``last`` must agree on to be continued: the code's training version, the probe and
     training settings (not where files go nor the device), the classes, the tokenizers and the data."""
     settings = {k: v for k, v in dataclasses.asdict(train_cfg).items() if k not in ("cache_dir", "device", "variants")}
-    text = json.dumps([TRAIN_VERSION, dataclasses.asdict(cfg), settings, dataclasses.asdict(dims),
-                       dataclasses.asdict(meta), data_version], sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return run_digest(TRAIN_VERSION, dataclasses.asdict(cfg), settings, dataclasses.asdict(dims),
+                            dataclasses.asdict(meta), data_version)
 
 
 @dataclass
@@ -143,13 +140,7 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
         save=lambda path, epoch, step, record, state: save_slr(path, model, meta, epoch, step, data_version, record,
                                                                settings, state),
         best_path=best_path, last_path=last_path, evaluate=evaluate, on_epoch=on_epoch)
-    if last_path is not None and Path(last_path).exists():  # resume: continue the same curve
-        loaded = load_slr(last_path, device)
-        if loaded.train_state is None:
-            raise ValueError(f"{last_path} has no training state; delete it to train the probe afresh")
-        model.load_state_dict(loaded.model.state_dict())
-        tail.resume(loaded.train_state)
-    resumed_from_epoch = tail.epoch
+    resumed_from_epoch = tail.resume_saved(model, lambda p: load_slr(p, device), f"the {meta.variant} probe")
     bar = tqdm(tail.remaining(stop_after_epochs), desc=f"slr {meta.variant}", unit="epoch", disable=not progress)
     for epoch in bar:
         model.train()

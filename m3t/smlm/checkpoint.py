@@ -16,7 +16,7 @@ import torch
 from m3t.smlm.config import SMLMConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
-from m3t.training import read_checkpoint, save_checkpoint
+from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-smlm-v1"
 
@@ -38,22 +38,13 @@ def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabular
               train_state: dict[str, Any] | None = None) -> Path:
     """``train_config``: the training settings, kept so evaluations can say which variant they measure;
     ``train_state``: what continues the run (:meth:`m3t.training.EpochTail.train_state`), ``last`` only."""
-    payload = {
-        "format": FORMAT,
-        "config": dataclasses.asdict(model.cfg),
-        "dims": dataclasses.asdict(model.dims),
-        "backbone_config": model.backbone.config.to_dict(),
-        "vocabulary": vocab.to_dict(),
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "epoch": int(epoch),
-        "step": int(step),
-        "data_version": data_version,
-        "metrics": {k: float(v) for k, v in metrics.items()},
-        "train_config": dict(train_config or {}),
-    }
-    if train_state is not None:
-        payload["train_state"] = train_state
-    return save_checkpoint(path, payload)
+    return save_checkpoint(path, checkpoint_payload(
+        FORMAT, model, epoch, step, data_version, metrics, dict(train_config or {}), train_state,
+        config=dataclasses.asdict(model.cfg),
+        dims=dataclasses.asdict(model.dims),
+        backbone_config=model.backbone.config.to_dict(),
+        vocabulary=vocab.to_dict(),
+    ))
 
 
 def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:

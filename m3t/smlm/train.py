@@ -14,8 +14,6 @@ Axis legend: B batch, U motion steps, S streams, K text tokens.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -37,7 +35,7 @@ from m3t.smlm.data import (
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
-from m3t.training import EpochTail, Selection, optimizer_step, warmup_cosine
+from m3t.training import EpochTail, Selection, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -110,10 +108,7 @@ def run_key(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, vocab: SignVocabulary, 
     """What a resumable ``last`` must agree on to be continued: the code's training version, the model and
     training settings (not where files go nor the device), the vocabulary and the data."""
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
-    digest = lambda v: hashlib.sha256(v).hexdigest() if isinstance(v, bytes) else str(v)  # noqa: E731
-    text = json.dumps([TRAIN_VERSION, dataclasses.asdict(model_cfg), settings, vocab.to_dict(), data_version],
-                      sort_keys=True, default=digest)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return run_digest(TRAIN_VERSION, dataclasses.asdict(model_cfg), settings, vocab.to_dict(), data_version)
 
 
 def train_smlm(
@@ -160,13 +155,7 @@ def train_smlm(
                                                                 record, settings, state),
         best_path=best_path, last_path=last_path, evaluate=None if evaluate is None else lambda: evaluate(model),
         is_main=dist_ctx.is_main, on_epoch=on_epoch)
-    if last_path is not None and Path(last_path).exists():  # resume: continue the same curve
-        loaded = load_smlm(last_path, device)
-        if loaded.train_state is None:
-            raise ValueError(f"{last_path} has no training state; delete it to start the SMLM afresh")
-        model.load_state_dict(loaded.model.state_dict())
-        tail.resume(loaded.train_state)
-    resumed_from_epoch = tail.epoch
+    resumed_from_epoch = tail.resume_saved(model, lambda p: load_smlm(p, device), "the SMLM")
     bar = tqdm(tail.remaining(stop_after_epochs), desc="smlm", unit="epoch",
                disable=not progress or not dist_ctx.is_main)
     for epoch in bar:

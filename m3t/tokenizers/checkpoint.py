@@ -15,7 +15,7 @@ import torch
 
 from m3t.tokenizers.config import VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer
-from m3t.training import read_checkpoint, save_checkpoint
+from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-tokenizer-v1"
 
@@ -37,19 +37,11 @@ def config_to_dict(cfg: VAEConfig) -> dict[str, Any]:
 
 def save_tokenizer(path: str | os.PathLike, model: MotionTokenizer, group: str, epoch: int, step: int,
                    data_version: str, metrics: dict[str, float], train_state: dict[str, Any] | None = None) -> Path:
-    payload = {
-        "format": FORMAT,
-        "group": group,
-        "config": config_to_dict(model.cfg),
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "epoch": int(epoch),
-        "step": int(step),
-        "data_version": data_version,
-        "metrics": {k: float(v) for k, v in metrics.items()},
-    }
-    if train_state is not None:
-        payload["train_state"] = train_state
-    return save_checkpoint(path, payload)
+    return save_checkpoint(path, checkpoint_payload(
+        FORMAT, model, epoch, step, data_version, metrics, None, train_state,
+        group=group,
+        config=config_to_dict(model.cfg),
+    ))
 
 
 def load_tokenizer(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedTokenizer:

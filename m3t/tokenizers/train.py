@@ -29,6 +29,7 @@ from m3t.training import (
     EpochTail,
     Selection,
     optimizer_step,
+    run_digest,
     warmup_cosine,
 )
 
@@ -69,12 +70,8 @@ def train_step(model: torch.nn.Module, batch: tuple[torch.Tensor, torch.Tensor],
 
 
 def run_key(group: str, model_cfg: VAEConfig, cfg: TokenizerTrainConfig, data_version: str) -> str:
-    import hashlib
-    import json
-
     relevant = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("out_dir", "cache_dir", "device")}
-    text = json.dumps([TRAIN_VERSION, group, dataclasses.asdict(model_cfg), relevant, data_version], sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return run_digest(TRAIN_VERSION, group, dataclasses.asdict(model_cfg), relevant, data_version)
 
 
 def train_tokenizer(
@@ -119,13 +116,8 @@ def train_tokenizer(
                                                                      record, state),
         best_path=best_path, last_path=last_path, evaluate=None if probe is None else lambda: probe.measure(model),
         is_main=dist_ctx.is_main, on_epoch=on_epoch)
-    if last_path.exists():  # resume: same config + same data -> continue the same curve
-        loaded = load_tokenizer(last_path, device)
-        if loaded.train_state is None:
-            raise ValueError(f"{last_path} has no training state; delete it to start this tokenizer afresh")
-        model.load_state_dict(loaded.model.state_dict())
-        tail.resume(loaded.train_state)
-    resumed_from_epoch = tail.epoch
+    # resume: same config + same data -> continue the same curve
+    resumed_from_epoch = tail.resume_saved(model, lambda p: load_tokenizer(p, device), f"tokenizer {group!r}")
     net = DistributedDataParallel(model) if dist_ctx.world_size > 1 else model
     bar = tqdm(tail.remaining(stop_after_epochs), desc=f"tokenizer:{group}", unit="epoch",
                disable=not progress or not dist_ctx.is_main)
