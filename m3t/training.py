@@ -18,7 +18,7 @@ import json
 import math
 import os
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -169,6 +169,18 @@ class Selection:
         return value < than if self.mode == "min" else value > than
 
 
+@dataclass
+class TrainRun:
+    """What a trainer returns: where its ``best`` checkpoint is, the per-epoch records and the best one (rank 0),
+    the model after the last epoch (not the selected one) and the epoch a resumed run started at."""
+
+    best_path: Path
+    history: list[dict[str, float]] = field(default_factory=list)
+    best: dict[str, float] = field(default_factory=dict)
+    model: Any = None
+    resumed_from_epoch: int = 0
+
+
 class EpochTail:
     """Everything after an epoch's batches. ``end_epoch`` adds ``epoch`` and ``lr`` to the epoch's training
     means; on rank 0 only it then runs ``evaluate()`` every ``eval_every`` epochs and after the last one
@@ -213,6 +225,10 @@ class EpochTail:
         set_rng_state(state["rng"])
         self.epoch, self.step, self.best_score = state["epoch"], state["step"], state["best_score"]
         self.history, self.best = list(state["history"]), dict(state["best"])
+
+    def result(self, model: torch.nn.Module, resumed_from_epoch: int = 0) -> TrainRun:
+        """The run's :class:`TrainRun` once the loop is done."""
+        return TrainRun(self.best_path, self.history, self.best, model, resumed_from_epoch)
 
     def resume_saved(self, model: torch.nn.Module, load: Callable[[Path], Any], what: str) -> int:
         """Continue from the ``last`` checkpoint when one exists: ``load(path)`` gives an object with ``model``

@@ -15,7 +15,6 @@ Axis legend: B batch, T frames, K text tokens, G gloss classes.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,19 +37,10 @@ from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.metrics.text import slt_translation_metrics
 from m3t.runtime import autocast, choose_device
-from m3t.training import EpochTail, Selection, optimizer_step, run_digest
+from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest
 
 TRAIN_VERSION = "backtranslation-v1"  # part of the resume key: bump when older training state becomes invalid
 DECODE_ONLY = ("beam_size", "length_penalty", "languages")  # model-section keys a trained model does not depend on
-
-
-@dataclass
-class BackTranslationTrainResult:
-    best_path: Path
-    history: list[dict[str, float]] = field(default_factory=list)
-    best: dict[str, float] = field(default_factory=dict)
-    model: SignToText | None = None  # after the last epoch (not the selected one)
-    resumed_from_epoch: int = 0
 
 
 class PlateauSchedule:
@@ -131,7 +121,7 @@ def train_backtranslation(
     on_epoch: Callable[[dict[str, float], int], None] | None = None,
     progress: bool = True,
     stop_after_epochs: int | None = None,
-) -> BackTranslationTrainResult:
+) -> TrainRun:
     """Train ``corpus.language``'s model; ``last_path``: the resumable checkpoint (continued when it exists;
     name it by :func:`run_key`); ``stop_after_epochs``: train at most that many more epochs."""
     from tqdm.auto import tqdm
@@ -174,4 +164,4 @@ def train_backtranslation(
                 sums.setdefault(k, []).append(v)
             tail.step += 1
         tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}, bar)
-    return BackTranslationTrainResult(Path(best_path), tail.history, tail.best, model, resumed_from_epoch)
+    return tail.result(model, resumed_from_epoch)

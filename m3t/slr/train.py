@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,7 @@ from m3t.slr.config import SLRConfig, SLRTrainConfig
 from m3t.slr.evaluate import topk_hits
 from m3t.slr.features import Example, variant_streams
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import EpochTail, Selection, optimizer_step, run_digest, warmup_cosine
+from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "slr-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -100,19 +100,10 @@ def run_key(cfg: SLRConfig, train_cfg: SLRTrainConfig, dims: ProbeDims, meta: Pr
                             dataclasses.asdict(meta), data_version)
 
 
-@dataclass
-class SLRTrainResult:
-    best_path: Path
-    history: list[dict[str, float]] = field(default_factory=list)
-    best: dict[str, float] = field(default_factory=dict)
-    model: SLRProbe | None = None  # after the last epoch (not the selected one)
-    resumed_from_epoch: int = 0
-
-
 def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width: int, train: Sequence[Example],
               dev: Sequence[Example], data_version: str, best_path: str | Path, last_path: str | Path | None = None,
               on_epoch: Callable[[dict[str, float], int], None] | None = None, progress: bool = True,
-              stop_after_epochs: int | None = None) -> SLRTrainResult:
+              stop_after_epochs: int | None = None) -> TrainRun:
     """Train one probe variant on ``train`` (features cached); select by Top-1 on ``dev`` (``val_top1``).
 
     ``last_path``: the resumable checkpoint, written after every epoch and continued from when it exists
@@ -153,4 +144,4 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
                 stats.setdefault(k, []).append(v)
             tail.step += 1
         tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in stats.items()}, bar)
-    return SLRTrainResult(Path(best_path), tail.history, tail.best, model, resumed_from_epoch)
+    return tail.result(model, resumed_from_epoch)

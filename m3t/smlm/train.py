@@ -14,7 +14,6 @@ Axis legend: B batch, U motion steps, S streams, K text tokens.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -35,18 +34,9 @@ from m3t.smlm.data import (
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
-from m3t.training import EpochTail, Selection, optimizer_step, run_digest, warmup_cosine
+from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid
-
-
-@dataclass
-class SMLMTrainResult:
-    best_path: Path
-    history: list[dict[str, float]] = field(default_factory=list)
-    best: dict[str, float] = field(default_factory=dict)
-    model: SignMotionLM | None = None  # after the last epoch (not the selected one)
-    resumed_from_epoch: int = 0
 
 
 def production_loss(logits: dict[str, torch.Tensor], targets: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
@@ -124,7 +114,7 @@ def train_smlm(
     progress: bool = True,
     last_path: str | Path | None = None,
     stop_after_epochs: int | None = None,
-) -> SMLMTrainResult:
+) -> TrainRun:
     """Train the SMLM; ``evaluate(model)`` returns validation metrics incl. ``dtw_jpe_mean_m`` (selection).
 
     ``last_path``: the resumable checkpoint, written after every epoch and continued from when it exists
@@ -168,4 +158,4 @@ def train_smlm(
             tail.step += 1
         # np.mean per key: the two tasks' losses come from different numbers of steps
         tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in losses.items()}, bar)
-    return SMLMTrainResult(Path(best_path), tail.history, tail.best, model, resumed_from_epoch)
+    return tail.result(model, resumed_from_epoch)
