@@ -19,7 +19,7 @@ PACKAGES = ("m3t", "flows", "dashboards")
 # Lowest first; a module may import from its own layer and the layers below it. The body model is the
 # foundation every other component computes with; shards (the data contract) sit below fitting, which writes
 # them; metrics and render depend only on the body model and shards, so trainers can select checkpoints by
-# them; models (smlm and the coming sgsa / slr / backtranslation) sit above tokenizers.
+# them; models (smlm, slr, backtranslation and the coming sgsa) sit above tokenizers.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment")),
     ("body", ("m3t.body",)),
