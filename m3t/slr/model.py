@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from einops import rearrange, repeat
 from torch import nn
 
 from m3t.slr.config import SLRConfig
@@ -72,8 +71,8 @@ class SLRProbe(nn.Module):
         if steps > self.cfg.max_steps:
             raise ValueError(f"{steps} token steps exceed slr.max_steps={self.cfg.max_steps}")
         x = x + self.modality[None, None] + self.position[:steps][None, :, None]
-        x = rearrange(x, "b n s w -> b (n s) w")
-        valid = repeat(mask.bool(), "b n -> b (n s)", s=len(self.dims.streams))
+        x = x.flatten(1, 2)  # (B, N, S, W) -> (B, N * S, W): step-major, streams interleaved
+        valid = mask.bool().repeat_interleave(len(self.dims.streams), dim=1)  # (B, N) -> (B, N * S)
         return x, valid
 
     def forward(self, features: dict[str, torch.Tensor], mask: torch.Tensor) -> torch.Tensor:
