@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from m3t.corpora.clip import Clip
 from m3t.runtime import DistributedContext
+from m3t.shards.tokens import TokenClip, TokenInfo, TokenShard
 from m3t.smlm.checkpoint import load_smlm, save_smlm
-from m3t.smlm.data import IGNORE, Example, production_batch, translation_batch
+from m3t.smlm.data import IGNORE, Example, examples_from_shard, production_batch, translation_batch
 from m3t.smlm.generate import generate_motion, translate
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
@@ -255,3 +258,22 @@ def test_data_parallel_on_gloo_keeps_ranks_in_sync(tmp_path):
     for name in a:
         assert torch.allclose(a[name], b[name], atol=1e-6), name
     assert (tmp_path / "best.pt").exists(), "rank 0 saves"
+
+
+def test_over_length_clips_are_skipped_for_training_and_cut_for_evaluation(vocab):
+    text = SENTENCES["ASL"][2]  # "the child reads the book today"
+    rng = np.random.default_rng(0)
+    tokens = {s: rng.integers(0, CODEBOOKS[s], 12) for s in MOTION_STREAMS}
+    clip = Clip("long", "toy", "test", "ASL", "s", text, "G", "x", 25.0)
+    shard = TokenShard(Path("x.parquet"), TokenInfo(CODEBOOKS, 4, {}), (TokenClip(clip, 48, tokens),))
+    full = vocab.encode_text(text, None)
+    assert len(full) > 3
+
+    found, skipped = examples_from_shard(shard, vocab, 3, 10)
+    assert found == [] and "smlm.max_text_tokens = 3" in skipped[0]["reason"] and "12 motion steps" in skipped[0]["reason"]
+
+    cut: list[dict] = []
+    found, skipped = examples_from_shard(shard, vocab, 3, 10, cut)
+    assert skipped == [] and [c["clip_id"] for c in cut] == ["long"] and "kept, cut to the limit" in cut[0]["reason"]
+    assert found[0].text_ids.tolist() == full[:3] and found[0].motion.shape == (10, len(MOTION_STREAMS))
+    assert found[0].motion[:, 0].tolist() == tokens[MOTION_STREAMS[0]][:10].tolist()

@@ -53,21 +53,20 @@ def examples_from_shard(shard: TokenShard, vocab: SignVocabulary, max_text_token
             if tc.num_tokens == 0:
                 raise VocabularyError("no motion tokens")
             over = []
-            text_tokens = len(vocab.encode_text(clip.text, 10 ** 9))
-            if text_tokens > max_text_tokens:
-                over.append(f"text of {text_tokens} tokens > smlm.max_text_tokens = {max_text_tokens}")
+            ids = vocab.encode_text(clip.text, None)
+            if len(ids) > max_text_tokens:
+                over.append(f"text of {len(ids)} tokens > smlm.max_text_tokens = {max_text_tokens}")
             if tc.num_tokens > max_motion_tokens:
                 over.append(f"{tc.num_tokens} motion steps > smlm.max_motion_tokens = {max_motion_tokens}")
             if over and cut is None:
                 raise VocabularyError("; ".join(over))
-            ids = vocab.encode_text(clip.text, max_text_tokens, truncate=True)
             motion = np.stack([np.asarray(tc.tokens[s], dtype=np.int64) for s in MOTION_STREAMS], axis=1)
         except (VocabularyError, KeyError) as exc:
             skipped.append({"clip_id": clip.id, "split": clip.split, "reason": str(exc)})
             continue
         if over:
             cut.append({"clip_id": clip.id, "split": clip.split, "reason": "; ".join(over) + " (kept, cut to the limit)"})
-        examples.append(Example(clip.id, clip.language, clip.text, np.asarray(ids, dtype=np.int64),
+        examples.append(Example(clip.id, clip.language, clip.text, np.asarray(ids[:max_text_tokens], dtype=np.int64),
                                 motion[:max_motion_tokens]))
     return examples, skipped
 

@@ -98,7 +98,7 @@ class SMLMEvaluator:
         summary["mean_steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
         if scores.overall:
             summary[SELECTION_METRIC] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
-        else:  # nothing generated: the worst possible score, so such a checkpoint is never selected
+        else:  # no evaluation clip at all (an empty generation is scored as the rest pose): never selected
             summary[SELECTION_METRIC] = float("inf")
         summary.update(scores.group_summary)
         report = EvaluationReport(summary, rows, generated)

@@ -182,12 +182,14 @@ class SignVocabulary:
         return np.where(local == size, self.eos_id, local + self._offsets[stream])
 
     # ---- text ----------------------------------------------------------------------------------
-    def encode_text(self, text: str, max_tokens: int, truncate: bool = False) -> list[int]:
-        """Text -> ids (no specials); empty text -> VocabularyError; more than ``max_tokens`` ids ->
-        VocabularyError, or (``truncate``) the first ``max_tokens`` ids."""
+    def encode_text(self, text: str, max_tokens: int | None, truncate: bool = False) -> list[int]:
+        """Text -> ids (no specials); empty text -> VocabularyError; more than ``max_tokens`` ids (None: no
+        limit) -> VocabularyError, or (``truncate``) the first ``max_tokens`` ids."""
         if not isinstance(text, str) or not text.strip():
             raise VocabularyError("empty text: give a sentence to translate into sign")
         ids = self.text.encode(text)
+        if max_tokens is None:
+            return ids
         if truncate:
             return ids[:max_tokens]
         if len(ids) > max_tokens:
