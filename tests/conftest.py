@@ -19,3 +19,19 @@ def body():
     from m3t.body.anny_body import AnnyBody
 
     return AnnyBody()
+
+
+@pytest.fixture(scope="session")
+def fx(tmp_path_factory):
+    """The SMPL-FX model built from the synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`)."""
+    from smplfx_fixtures import ensure_fixture_files, fixture_body
+
+    return fixture_body(ensure_fixture_files(tmp_path_factory))
+
+
+@pytest.fixture(scope="module")
+def truth(fx):
+    """Ground truth of a ``fusion_fixtures.T``-frame SMPL-FX clip with its trackers' identities."""
+    from fusion_fixtures import T, ground_truth
+
+    return ground_truth(fx, frames=T, seed=7)

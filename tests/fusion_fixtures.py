@@ -45,6 +45,7 @@ from m3t.body.smplfx_build import SMPLX_JOINTS
 
 MIRROR = np.diag([-1.0, 1.0, 1.0])
 NLF_MISSING, WILOR_RIGHT_MISSING, PIXEL3DMM_MISSING = (2,), (3, 4, 5), (6, 7)
+T = 10  # frames of the ``truth`` fixture's clip (tests/conftest.py)
 
 
 @dataclass(frozen=True)

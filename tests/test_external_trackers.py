@@ -9,8 +9,8 @@ import pickle
 import numpy as np
 import pytest
 import torch
-from fusion_fixtures import ground_truth, rot_err_deg, write_nlf, write_pixel3dmm, write_wilor
-from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
+from fusion_fixtures import T, rot_err_deg, write_nlf, write_pixel3dmm, write_wilor
+from smplfx_fixtures import front_camera_fx
 
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.fitting.fit import FittingConfig
@@ -19,17 +19,6 @@ from m3t.fitting.fusion import HELD, INTERPOLATED, TrackerStream, fuse, fuse_tra
 from m3t.trackers.external import TrackerFileError, load_tracker_file, read_nlf, read_pixel3dmm, read_wilor
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 
-T = 10
-
-
-@pytest.fixture(scope="module")
-def fx(tmp_path_factory):
-    return fixture_body(ensure_fixture_files(tmp_path_factory))
-
-
-@pytest.fixture(scope="module")
-def truth(fx):
-    return ground_truth(fx, frames=T, seed=7)
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".pt"])

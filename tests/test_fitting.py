@@ -18,15 +18,15 @@ from m3t.trackers.track import TrackError, load_track, save_track
 FIT = FittingConfig(iterations=200, camera_iterations=80, lr=0.02)
 
 
-def smooth_motion(body, frames=16, seed=0):
-    """Rest pose plus slow sinusoidal rotations of every driven joint and a moving face."""
+def smooth_motion(body, frames=16, seed=0, amplitude=0.25):
+    """Rest pose plus slow sinusoidal rotations (``amplitude`` rad scale) of every driven joint and a moving face."""
     g = torch.Generator().manual_seed(seed)
     t = torch.linspace(0, 1, frames)[:, None, None]
     params = body.rest_params(frames)
     for m in body.layout.modalities:
         if m.kind == "rotation6d":
             n = len(m.labels)
-            amp, phase = 0.25 * torch.randn(1, n, 3, generator=g), 6 * torch.rand(1, n, 1, generator=g)
+            amp, phase = amplitude * torch.randn(1, n, 3, generator=g), 6 * torch.rand(1, n, 1, generator=g)
             rest = sixd_to_matrix(params[m.name].reshape(frames, n, 6))
             params[m.name] = matrix_to_6d(roma.rotvec_to_rotmat(amp * torch.sin(3 * t + phase)) @ rest).reshape(frames, -1)
         else:

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import torch
 from fusion_fixtures import (
-    rot_err_deg,
     NLF_MISSING,
     PIXEL3DMM_MISSING,
     WILOR_RIGHT_MISSING,
-    ground_truth,
+    T,
     output_paths,
     pixel3dmm_frame,
+    rot_err_deg,
     write_clip,
     write_media,
 )
-from smplfx_fixtures import ensure_fixture_files, fixture_body, front_camera_fx
+from smplfx_fixtures import front_camera_fx
 
 from m3t.body.anny_body import BODY_BONES, PHENOTYPES, hand_bones
 from m3t.body.protocol import Modality, ModalityLayout
@@ -38,18 +38,7 @@ from m3t.fitting.fusion import (
 from m3t.trackers.external import TrackerFileError, TrackerOutputs, find_tracker_outputs
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 
-T = 10
 ALL = ("nlf", "wilor", "pixel3dmm")
-
-
-@pytest.fixture(scope="module")
-def fx(tmp_path_factory):
-    return fixture_body(ensure_fixture_files(tmp_path_factory))
-
-
-@pytest.fixture(scope="module")
-def truth(fx):
-    return ground_truth(fx, frames=T, seed=7)
 
 
 def frames_except(*missing: int) -> list[int]:

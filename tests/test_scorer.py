@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import roma
 import torch
+from test_fitting import smooth_motion
 
 from m3t.body.build_correspondence import umeyama
-from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.fitting import evaluate as fitting_evaluate
 from m3t.metrics.motion import evaluate_pairs, summarise
 from m3t.metrics.procrustes import procrustes_error_mm, similarity_align, similarity_transform
@@ -22,19 +22,7 @@ from m3t.metrics.vertices import vertex_errors_mm
 
 def motion(body, frames: int, seed: int) -> dict[str, np.ndarray]:
     """(frames, D_m) per modality: the rest pose under slow random rotations, a moving face."""
-    g = torch.Generator().manual_seed(seed)
-    t = torch.linspace(0, 1, frames)[:, None, None]
-    params = body.rest_params(frames)
-    for m in body.layout.modalities:
-        if m.kind == "rotation6d":
-            n = len(m.labels)
-            amp, phase = 0.3 * torch.randn(1, n, 3, generator=g), 6 * torch.rand(1, n, 1, generator=g)
-            rest = sixd_to_matrix(params[m.name].reshape(frames, n, 6))
-            turn = roma.rotvec_to_rotmat(amp * torch.sin(3 * t + phase))  # (T, n, 3, 3)
-            params[m.name] = matrix_to_6d(turn @ rest).reshape(frames, -1)
-        else:
-            params[m.name] = (0.3 + 0.25 * torch.sin(4 * t[..., 0] + 6 * torch.rand(1, m.dim, generator=g))).clamp(0, 1)
-    return {k: v.numpy() for k, v in params.items()}
+    return {k: v.numpy() for k, v in smooth_motion(body, frames, seed, amplitude=0.3).items()}
 
 
 @pytest.fixture(scope="module")
