@@ -9,6 +9,8 @@
     m3t tokenizer-table                   print the Tab. 3-style comparison from MLflow
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
     m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
+    m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
+    m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
 """
 from __future__ import annotations
@@ -128,6 +130,36 @@ def _cmd_slr_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sgsa_sweep(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import absolute_uri
+    from m3t.sgsa.table import sweep_settings
+    from m3t.tokenizers.ablation import dvc_command
+
+    params = load_params(args.params)
+    settings = sweep_settings(args.table, args.seeds, layers=args.layers)
+    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
+    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
+    for i, setting in enumerate(settings, 1):
+        command = dvc_command(setting, stage="evaluate-sgsa")
+        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
+        if not args.dry_run and subprocess.call(command, env=env) != 0:
+            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
+    return 0 if args.dry_run else _cmd_sgsa_table(args)
+
+
+def _cmd_sgsa_table(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+    from m3t.sgsa.table import adjacency_table, cross_table, layers_table
+
+    records = fetch_runs(load_params(args.params).experiment, stage="evaluate-sgsa")
+    tables = {"1": layers_table, "2": adjacency_table, "3": cross_table}
+    chosen = [args.table] if getattr(args, "table", "all") != "all" else list(tables)
+    print("\n\n".join(tables[t](records) for t in chosen))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -157,6 +189,16 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_bt_table)
     p = sub.add_parser("slr-table", help="print Tab. 4 (recognition probe with intervals) from MLflow")
     p.set_defaults(func=_cmd_slr_table)
+    p = sub.add_parser("sgsa-sweep", help="SGSA Tab. 1 (L = 0..5) or Tab. 2 (N = inf, 1, 2, 3, 5) by dvc exp, then "
+                                          "the table")
+    p.add_argument("table", choices=("1", "2"))
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="sgsa_train.seed values (one run each)")
+    p.add_argument("--layers", type=int, default=None, help="L of the Tab. 2 sweep (default: params' sgsa layers)")
+    p.add_argument("--dry-run", action="store_true")
+    p.set_defaults(func=_cmd_sgsa_sweep)
+    p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
+    p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
+    p.set_defaults(func=_cmd_sgsa_table)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -5,6 +5,7 @@
     backtranslation/embedded    train the back-translation judges + score the GT motion (before smlm/embedded)
     smlm/embedded               train + generate + evaluate the SMLM (prefect deployment run smlm/embedded)
     slr/embedded                train + evaluate the recognition probes (full and face-less)
+    sgsa/embedded               skeleton judge + train PT and SGSA + score them beside the SMLM (after smlm/embedded)
     evaluate-smlm/nightly       re-evaluates the current SMLM checkpoint every night at 03:00 (cron)
 """
 from __future__ import annotations
@@ -15,6 +16,7 @@ from prefect import serve
 
 from flows.backtranslation import backtranslation_flow
 from flows.fit_corpus import fit_corpus
+from flows.sgsa import sgsa_flow
 from flows.slr import slr_flow
 from flows.smlm import evaluate_smlm_flow, smlm_flow
 from flows.tokenizers import train_tokenizers_flow
@@ -32,7 +34,8 @@ def main() -> None:
                                                cron=args.cron)
     judge = backtranslation_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
     slr = slr_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
-    serve(embedded, tokenizers, judge, smlm, slr, nightly)
+    sgsa = sgsa_flow.to_deployment(name="embedded", parameters={"params_path": args.params})
+    serve(embedded, tokenizers, judge, smlm, slr, sgsa, nightly)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
 from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.experiment import ExperimentConfig
 from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
+from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
 from m3t.shards.folders import DataConfig
 from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
 from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
@@ -57,6 +58,9 @@ class Params:
     slr_evaluate: SLREvaluateConfig
     backtranslation: BackTranslationConfig  # the sign-to-text judge of every production model
     backtranslation_train: BackTranslationTrainConfig
+    sgsa: SGSAConfig  # skeletal graph self-attention production (SGSA) and its PT baseline
+    sgsa_train: SGSATrainConfig
+    sgsa_evaluate: SGSAEvaluateConfig
     corpora: dict[str, CorpusSource]  # corpus name -> where it lives and its adapter's options
 
     def fit_job(self, corpus: str | None = None) -> FitJob:

@@ -148,6 +148,30 @@ def set_rng_state(state: dict[str, Any] | torch.Tensor) -> None:
         random.setstate((version, tuple(internal), gauss))
 
 
+class PlateauSchedule:
+    """ReduceLROnPlateau in the shape :func:`optimizer_step` and :class:`EpochTail` expect of a schedule:
+    ``step()`` after each optimiser step does nothing, :meth:`observe` after each validation may cut the LR by
+    ``factor`` once the validation score has not improved (``mode`` ``"min"`` / ``"max"``) for ``patience``
+    validations; ``state_dict`` / ``load_state_dict`` carry it through a ``last`` checkpoint."""
+
+    def __init__(self, optim: torch.optim.Optimizer, mode: Literal["min", "max"], factor: float, patience: int,
+                 min_lr: float):
+        self.plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optim, mode=mode, factor=factor,
+                                                                  patience=patience, min_lr=min_lr)
+
+    def step(self) -> None:
+        pass
+
+    def observe(self, score: float) -> None:
+        self.plateau.step(score)
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.plateau.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.plateau.load_state_dict(state)
+
+
 # ---- the epoch tail -------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Selection:

@@ -21,6 +21,7 @@ from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-backtranslation-v1"
 STAGE = "train-backtranslation"
+SKELETON_STAGE = "train-backtranslation-skeleton"  # the judge of skeletal production models
 
 
 @dataclass(frozen=True)

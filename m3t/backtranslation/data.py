@@ -3,7 +3,9 @@
 What the model reads per frame is an :class:`InputSpec` (stored in the checkpoint): ``"model"`` concatenates every
 modality of the shard's layout, in ``STREAM_ORDER`` (body, left hand, right hand, face; 360-d for SMPL-FX, the
 layout's own dims for Anny), then any other modality in layout order; ``"smplx240"`` is SignSparK_BT's input
-(:mod:`m3t.backtranslation.smplx240`). Clips longer than ``max_frames`` are cut (SL-T's ``max_sgn_length``).
+(:mod:`m3t.backtranslation.smplx240`); ``"skeleton"`` reads a clip's normalised skeleton coordinates
+(:mod:`m3t.shards.skeletons`, one stream ``skeleton``): the judge of skeletal production models (SGSA, PT) and of
+any model whose motion is posed into the same graph. Clips longer than ``max_frames`` are cut (SL-T's ``max_sgn_length``).
 
 A clip the model cannot learn from is skipped with its reason (isolated sign, empty text, no frames, sentence
 longer than ``max_text_tokens``), never silently dropped.
@@ -12,6 +14,7 @@ Axis legend: B batch, T frames, D per-frame input dim, K text tokens (+1 for BOS
 """
 from __future__ import annotations
 
+import json
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -33,8 +36,10 @@ from m3t.backtranslation.text import (
     text_vocabulary,
 )
 from m3t.body.protocol import STREAM_ORDER, ModalityLayout
+from m3t.body.skeleton import SkeletonGraph
 from m3t.corpora.clip import Clip
 from m3t.shards.schema import layout_from_json, layout_to_json
+from m3t.shards.skeletons import SKELETON_STREAM
 
 IGNORE = -100  # target id the losses skip (padding)
 
@@ -43,19 +48,27 @@ IGNORE = -100  # target id the losses skip (padding)
 class InputSpec:
     """The per-frame input of a back-translation model: which layout, from which streams of which body layout."""
 
-    layout: str  # "model" | "smplx240"
+    layout: str  # "model" | "smplx240" | "skeleton"
     streams: tuple[tuple[str, int], ...]  # (modality, dim) the model layout concatenates, in order
-    source_layout: str  # the shards' ModalityLayout as JSON (m3t.shards.schema.layout_to_json)
+    source_layout: str  # the shards' ModalityLayout as JSON (m3t.shards.schema.layout_to_json); for "skeleton"
+    # the SkeletonGraph as JSON
     layout_name: str = "layout"  # the body model's name, for messages
 
     @classmethod
     def from_layout(cls, kind: str, layout: ModalityLayout, layout_name: str = "layout") -> InputSpec:
         if kind not in ("model", "smplx240"):
-            raise ValueError(f"backtranslation.input_layout {kind!r} unknown; allowed: model, smplx240")
+            raise ValueError(f"backtranslation.input_layout {kind!r} unknown here; allowed: model, smplx240 "
+                             "(skeleton inputs: InputSpec.for_skeleton)")
         if kind == "smplx240":
             smplx240_index(layout, layout_name)  # refuses a non-SMPL-X layout now, not at the first clip
         order = [n for n in STREAM_ORDER if n in layout.names] + [n for n in layout.names if n not in STREAM_ORDER]
         return cls(kind, tuple((n, layout.dims[n]) for n in order), layout_to_json(layout), layout_name)
+
+    @classmethod
+    def for_skeleton(cls, graph: SkeletonGraph) -> InputSpec:
+        """Normalised skeleton coordinates of ``graph`` (no counter), stream ``skeleton``."""
+        return cls("skeleton", ((SKELETON_STREAM, graph.width),), json.dumps(graph.to_dict(), sort_keys=True),
+                   graph.name)
 
     @property
     def dim(self) -> int:
@@ -91,6 +104,8 @@ class InputSpec:
 
     def describe(self) -> str:
         streams = " + ".join(f"{n} {d}" for n, d in self.streams)
+        if self.layout == "skeleton":
+            return f"skeleton ({self.layout_name} graph, {self.dim} normalised coordinates)"
         return f"smplx240 (SignSparK_BT, {SMPLX240_DIM}-d)" if self.layout == "smplx240" else f"model ({streams})"
 
 

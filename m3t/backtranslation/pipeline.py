@@ -8,6 +8,9 @@ production model's output goes through.
   ``languages.json`` (per language: checkpoint, input layout, gloss source and pseudo-gloss method, scoring
   unit) and ``skipped.jsonl``. A checkpoint left there by an earlier run for a language this run does not
   train is removed, so the folder holds exactly one run's models.
+- With :class:`SkeletonInput` the same trainer makes the **skeleton judge** (stage train-backtranslation-skeleton):
+  models reading normalised skeleton coordinates, in ``<models>/backtranslation-skeleton``; it scores the
+  skeletal production models (PT, SGSA) and, posed into the same graph, the SMLM and the ground truth.
 - :func:`backtranslate`: motion parameters of any clips (ground truth or generated) -> sentences -> SL-T
   metrics per language (definition "slt", :mod:`m3t.metrics.text`). A generation with no frames is scored as
   the empty sentence, never dropped.
@@ -28,16 +31,19 @@ from pathlib import Path
 import numpy as np
 
 from m3t.atomic import copy_file, write_json, write_jsonl, write_text
-from m3t.backtranslation.checkpoint import STAGE, LoadedBackTranslation, load_backtranslation
+from m3t.backtranslation.checkpoint import SKELETON_STAGE, STAGE, LoadedBackTranslation, load_backtranslation
 from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTrainConfig
 from m3t.backtranslation.data import InputSpec, language_corpus, skip_reason
 from m3t.backtranslation.decode import translate
 from m3t.backtranslation.train import run_key, train_backtranslation
+from m3t.body.protocol import BodyModel
+from m3t.body.skeleton import SkeletonGraph
 from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.text import SLT_DEFINITION, slt_metrics_by_language, slt_scores, slt_unit
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_split, shard_layout
-from m3t.shards.schema import layout_to_json
+from m3t.shards.schema import FittedClip, layout_to_json
+from m3t.shards.skeletons import skeleton_clip
 
 PER_CLIP_COLUMNS = ("clip_id", "language", "frames", "reference", "hypothesis", "bleu1", "bleu2", "bleu3", "bleu4",
                     "rouge_l")
@@ -76,20 +82,39 @@ def _layout(data: DataConfig):
 
 
 # ------------------------------------------------------------------------------------------------ train
+@dataclass(frozen=True)
+class SkeletonInput:
+    """A judge that reads skeletons: every clip posed into ``graph`` by ``body`` and normalised
+    (:mod:`m3t.shards.skeletons`), trained into ``DataConfig.skeleton_judge_dir``."""
+
+    body: BodyModel
+    graph: SkeletonGraph
+
+    def view(self, clips: list[FittedClip]) -> list[FittedClip]:
+        """Clips with their skeleton coordinates as the one stream; clips without frames stay (skipped later)."""
+        return [skeleton_clip(self.body, c, self.graph).as_fitted() if c.num_frames else c for c in clips]
+
+
 def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackTranslationTrainConfig,
-                              data: DataConfig, on_epoch=None, progress: bool = True) -> dict[str, float]:
+                              data: DataConfig, on_epoch=None, progress: bool = True,
+                              skeleton: SkeletonInput | None = None) -> dict[str, float]:
     """Train every language's model; ``on_epoch(language, record, epoch)`` sees each epoch's record. Returns
-    the numbers written to ``metrics.json`` (``<language>/<name>``)."""
+    the numbers written to ``metrics.json`` (``<language>/<name>``). With ``skeleton`` the models read skeletons
+    (``backtranslation.input_layout`` is ignored) and go to ``data.skeleton_judge_dir``."""
     train, dev = read_split(data.shards_dirs, "train"), read_split(data.shards_dirs, "dev")
     if not train:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no clip")
-    spec = InputSpec.from_layout(model_cfg.input_layout, _layout(data), train[0].body_model)
+    if skeleton is not None:
+        spec, out = InputSpec.for_skeleton(skeleton.graph), data.skeleton_judge_dir
+        train, dev = skeleton.view(train), skeleton.view(dev)
+    else:
+        spec, out = InputSpec.from_layout(model_cfg.input_layout, _layout(data), train[0].body_model), \
+            data.backtranslation_dir
     languages = _selected_languages(model_cfg, train)
     if not languages:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no sentence clip (only isolated signs); "
                          "back-translation needs sentences")
     version = data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")])
-    out = data.backtranslation_dir
     train_by, dev_by = _by_language(train), _by_language(dev)
     skipped = [{"clip_id": c.clip.id, "split": c.clip.split, "language": c.clip.language,
                 "reason": skip_reason(c.clip, c.num_frames) or "language not in backtranslation.languages"}
@@ -128,16 +153,19 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
 
 
 def train_and_log(model_cfg: BackTranslationConfig, train_cfg: BackTranslationTrainConfig, data: DataConfig,
-                  experiment: ExperimentConfig, progress: bool = True) -> dict[str, float]:
+                  experiment: ExperimentConfig, progress: bool = True,
+                  skeleton: SkeletonInput | None = None) -> dict[str, float]:
     """:func:`run_train_backtranslation` inside an MLflow run (params, per-epoch records, the written files)."""
-    with start_run(experiment, STAGE, tags={"input_layout": model_cfg.input_layout}) as run:
+    layout = model_cfg.input_layout if skeleton is None else f"skeleton ({skeleton.graph.name})"
+    stage = STAGE if skeleton is None else SKELETON_STAGE
+    with start_run(experiment, stage, tags={"input_layout": layout}) as run:
         run.log_params(section_params(backtranslation=model_cfg, backtranslation_train=train_cfg, data=data))
         report = run_train_backtranslation(
-            model_cfg, train_cfg, data, progress=progress,
+            model_cfg, train_cfg, data, progress=progress, skeleton=skeleton,
             on_epoch=lambda language, record, epoch: run.log_metrics(
                 {f"{language}/{k}": v for k, v in record.items()}, step=epoch))
         run.log_metrics(report)
-        out = data.backtranslation_dir
+        out = data.backtranslation_dir if skeleton is None else data.skeleton_judge_dir
         described = json.loads((out / "languages.json").read_text())
         run.set_tags({f"gloss_source/{lang}": d["gloss_source"] for lang, d in described.items()})
         for name in ("metrics.json", "languages.json", "skipped.jsonl"):

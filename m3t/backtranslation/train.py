@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 import torch
@@ -37,32 +37,10 @@ from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.metrics.text import slt_translation_metrics
 from m3t.runtime import autocast, choose_device
-from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest
+from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, optimizer_step, run_digest
 
 TRAIN_VERSION = "backtranslation-v1"  # part of the resume key: bump when older training state becomes invalid
 DECODE_ONLY = ("beam_size", "length_penalty", "languages")  # model-section keys a trained model does not depend on
-
-
-class PlateauSchedule:
-    """ReduceLROnPlateau (mode max) in the shape :func:`m3t.training.optimizer_step` and :class:`EpochTail` expect
-    of a schedule: ``step()`` after each optimiser step does nothing, :meth:`observe` after each validation may
-    cut the LR; ``state_dict`` / ``load_state_dict`` carry it through a ``last`` checkpoint."""
-
-    def __init__(self, optim: torch.optim.Optimizer, cfg: BackTranslationTrainConfig):
-        self.plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optim, mode="max", factor=cfg.lr_factor,
-                                                                  patience=cfg.lr_patience, min_lr=cfg.min_lr)
-
-    def step(self) -> None:
-        pass
-
-    def observe(self, score: float) -> None:
-        self.plateau.step(score)
-
-    def state_dict(self) -> dict[str, Any]:
-        return self.plateau.state_dict()
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.plateau.load_state_dict(state)
 
 
 def losses(model: SignToText, batch: Batch, ctc_weight: float, smoothing: float = 0.0) -> dict[str, torch.Tensor]:
@@ -135,7 +113,7 @@ def train_backtranslation(
     model.set_feature_statistics(*(torch.as_tensor(a) for a in feature_statistics(corpus.train)))
     model.to(device)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
-    schedule = PlateauSchedule(optim, cfg)
+    schedule = PlateauSchedule(optim, "max", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
 
     def evaluate() -> dict[str, float]:

@@ -1,8 +1,9 @@
 """The one motion scorer: predicted body-model parameters against reference parameters, per clip, overall and
 per group (M3T Tab. 1's DTW-JPE / DTW-PA-JPE per region and face DTW-VPE, SOKE's evaluation).
 
-Any model that produces parameter sequences in the body model's layout is scored here (the SMLM, SGSA,
-back-translation baselines): nothing below knows about tokens, vocabularies or text. Both sides of a pair are
+Any model that produces parameter sequences in the body model's layout is scored here (the SMLM,
+back-translation baselines); models that produce points (the skeletal SGSA / PT) score posed pairs through
+:func:`score_point_pairs`, the same means and groups: nothing below knows about tokens, vocabularies or text. Both sides of a pair are
 posed with the same signer identity, so the error is the motion's alone. The points are the metric sets of
 :mod:`m3t.body.metric_sets`, the metrics those of :mod:`m3t.metrics.motion`.
 
@@ -111,15 +112,34 @@ class MotionScorer:
     def score(self, pairs: Sequence[MotionPair], progress: bool = False) -> MotionScores:
         """Score every pair (order kept in ``per_clip``); a bad pair raises ``ValueError`` naming it."""
         shown = [p.prediction if _frames(p.prediction) > 0 else self.rest_pose() for p in pairs]
-        results = evaluate_pairs([(self.points(s, p.identity), self._reference_points(p)) for p, s in zip(pairs, shown)],
+        return score_point_pairs([PointPair(p.clip_id, p.group, _frames(p.prediction), self.points(s, p.identity),
+                                            self._reference_points(p)) for p, s in zip(pairs, shown)],
                                  progress, self.config)
-        per_clip = [ClipScore(p.clip_id, p.group, _frames(p.prediction), r) for p, r in zip(pairs, results)]
-        by_group: dict[str, list[dict[str, float]]] = defaultdict(list)
-        for clip in per_clip:
-            by_group[clip.group].append(clip.metrics)
-        return MotionScores(
-            per_clip=per_clip,
-            overall=summarise([c.metrics for c in per_clip]) if per_clip else {},
-            groups={group: summarise(metrics) for group, metrics in by_group.items()},
-            empty_rate=float(np.mean([c.frames == 0 for c in per_clip])) if per_clip else 0.0,
-        )
+
+
+@dataclass(frozen=True)
+class PointPair:
+    """One clip already posed: {region: (T, K, 3) metres} on both sides. ``frames`` is what the model produced
+    (0 for an empty prediction shown as something else, e.g. the rest pose), counted in ``empty_rate``."""
+
+    clip_id: str
+    group: str
+    frames: int
+    prediction: Mapping[str, np.ndarray]
+    reference: Mapping[str, np.ndarray]
+
+
+def score_point_pairs(pairs: Sequence[PointPair], progress: bool = False,
+                      config: MotionMetricsConfig = MotionMetricsConfig()) -> MotionScores:
+    """The scores of posed pairs (skeleton models score here directly; :class:`MotionScorer` poses first)."""
+    results = evaluate_pairs([(p.prediction, p.reference) for p in pairs], progress, config)
+    per_clip = [ClipScore(p.clip_id, p.group, p.frames, r) for p, r in zip(pairs, results)]
+    by_group: dict[str, list[dict[str, float]]] = defaultdict(list)
+    for clip in per_clip:
+        by_group[clip.group].append(clip.metrics)
+    return MotionScores(
+        per_clip=per_clip,
+        overall=summarise([c.metrics for c in per_clip]) if per_clip else {},
+        groups={group: summarise(metrics) for group, metrics in by_group.items()},
+        empty_rate=float(np.mean([c.frames == 0 for c in per_clip])) if per_clip else 0.0,
+    )

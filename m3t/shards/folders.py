@@ -63,6 +63,15 @@ class DataConfig:
         return Path(self.models_dir) / "backtranslation"
 
     @property
+    def skeleton_judge_dir(self) -> Path:
+        """The back-translation models that read skeletons (the judge of SGSA / PT)."""
+        return Path(self.models_dir) / "backtranslation-skeleton"
+
+    @property
+    def sgsa_dir(self) -> Path:
+        return Path(self.models_dir) / "sgsa"
+
+    @property
     def generated(self) -> Path:
         return Path(self.generated_dir) / "+".join(self.train_corpora)
 

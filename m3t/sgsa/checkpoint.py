@@ -1,0 +1,75 @@
+"""Self-describing SGSA / PT checkpoints: ``{format, system, config, dims, graph, text_vocabulary,
+gloss_vocabulary, state_dict, epoch, step, data_version, metrics, train_config[, train_state]}``. The model, its
+skeleton graph (and so the adjacency A*) and the vocabularies are rebuilt from the file alone, loaded with
+``weights_only=True``; ``train_state`` (optimiser, plateau schedule, RNG, the noise augmentation's error std) is
+only in the resumable ``last`` checkpoint.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from m3t.backtranslation.text import Vocabulary
+from m3t.body.skeleton import SkeletonGraph, adjacency
+from m3t.sgsa.config import SGSAConfig
+from m3t.sgsa.model import SGSADims, SGSAProduction
+from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+
+FORMAT = "m3t-sgsa-v1"
+STAGE = "train-sgsa"
+
+
+@dataclass(frozen=True)
+class LoadedSGSA:
+    model: SGSAProduction
+    graph: SkeletonGraph
+    text_vocab: Vocabulary
+    gloss_vocab: Vocabulary | None
+    epoch: int
+    step: int
+    data_version: str
+    metrics: dict[str, float]
+    train_config: dict
+    train_state: dict[str, Any] | None = None
+
+    @property
+    def model_device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+
+def build_model(cfg: SGSAConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
+                gloss_vocab: Vocabulary | None) -> SGSAProduction:
+    """A fresh model for ``graph`` (width 3 x joints + counter; A* from the graph)."""
+    dims = SGSADims(graph.width + 1, len(text_vocab), 0 if gloss_vocab is None else len(gloss_vocab))
+    return SGSAProduction(cfg, dims, adjacency(graph, counter=True) if cfg.decoder_layers > 0 else None)
+
+
+def save_sgsa(path: str | os.PathLike, model: SGSAProduction, graph: SkeletonGraph, text_vocab: Vocabulary,
+              gloss_vocab: Vocabulary | None, epoch: int, step: int, data_version: str, metrics: dict[str, float],
+              train_config: dict | None = None, train_state: dict[str, Any] | None = None) -> Path:
+    return save_checkpoint(path, checkpoint_payload(
+        FORMAT, model, epoch, step, data_version, metrics, dict(train_config or {}), train_state,
+        system=model.cfg.system, variant=model.cfg.variant, config=dataclasses.asdict(model.cfg),
+        dims=dataclasses.asdict(model.dims), graph=graph.to_dict(), text_vocabulary=text_vocab.to_dict(),
+        gloss_vocabulary=None if gloss_vocab is None else gloss_vocab.to_dict()))
+
+
+def load_sgsa(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSGSA:
+    payload = read_checkpoint(path, FORMAT, "SGSA / PT", STAGE, device)
+    cfg = SGSAConfig(**payload["config"])
+    graph = SkeletonGraph.from_dict(payload["graph"])
+    text_vocab = Vocabulary.from_dict(payload["text_vocabulary"])
+    gloss = payload["gloss_vocabulary"]
+    gloss_vocab = None if gloss is None else Vocabulary.from_dict(gloss)
+    model = SGSAProduction(cfg, SGSADims(**payload["dims"]),
+                           adjacency(graph, counter=True) if cfg.decoder_layers > 0 else None)
+    model.load_state_dict(payload["state_dict"])
+    model.to(device).eval()
+    return LoadedSGSA(model, graph, text_vocab, gloss_vocab, payload["epoch"], payload["step"],
+                      payload["data_version"], payload["metrics"], payload["train_config"],
+                      payload.get("train_state"))

@@ -1,0 +1,389 @@
+"""The text -> skeleton production model of SGSA (Saunders et al. 2022, "Skeletal Graph Self-Attention") and its
+Progressive Transformers baseline (PT, Saunders et al. 2020), one class picked by ``cfg.decoder_layers``.
+
+Spoken-language encoder (Sec. 4.1): word embedding x sqrt(E) + sinusoidal positions -> pre-norm transformer encoder
+with a final LayerNorm (JoeyNMT) -> memory (B, K, E); optional gloss head on the memory (CTC logits, class 0 = blank).
+
+SGSA decoder (Sec. 4.2, ``decoder_layers = L >= 1``): width S throughout, no input embedding and no positional
+encoding (the counter column carries the progress). Each of the L post-norm layers:
+skeletal graph self-attention (h heads of full width S; values V_A = x A* W_V; causal mask banded to the last N
+frames) -> encoder-decoder attention (S -> E queries over the memory, back to S) -> feed-forward S -> S -> S;
+a final Linear(S, S) gives the next frames.
+PT decoder (``decoder_layers = 0``): frames embedded Linear(S, W) + sinusoidal positions -> ``standard_layers``
+standard post-norm transformer decoder layers (memory projected E -> W when E != W) -> Linear(W, S).
+
+Training input convention (teacher forcing): for a target clip of U frames, ``frames_in[:, 0]`` is the start frame
+(all zeros, counter 0) and ``frames_in[:, t] = target[:, t - 1]``; the output at t predicts ``target[:, t]``. The
+target's counter (last) column is (t + 1) / U for frame t (0-based), so the last frame has counter 1.
+Generation (counter decoding, PT) feeds each prediction back and stops a sequence at its first frame t (1-based)
+whose counter reaches 1 - 0.5 / t.
+
+Axis legend: B batch, K text tokens, E encoder width, G gloss classes, U frames, S skeleton width (coordinates + 1
+counter, the counter last), W width of the PT decoder, h heads.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from m3t.backtranslation.model import sinusoid_table
+from m3t.sgsa.config import SGSAConfig
+
+
+@dataclass(frozen=True)
+class SGSADims:
+    """Data-dependent sizes: skeleton width S (coordinates + the counter, last), text vocabulary (id 0 = PAD), gloss
+    classes incl. the CTC blank at 0 (0 = no gloss head)."""
+
+    width: int
+    text_vocab: int
+    gloss_vocab: int = 0
+
+
+@dataclass(frozen=True)
+class SGSAOutput:
+    frames: torch.Tensor  # (B, U, S) predicted next frames (counter in the last column)
+    gloss_logits: torch.Tensor | None  # (B, K, G) or None without a gloss head
+
+
+def causal_band(queries: int, keys: int, band: float, device: torch.device | None = None) -> torch.Tensor:
+    """(queries, keys) bool, True where query frame i may attend to key frame j: i - band <= j <= i."""
+    i = torch.arange(queries, device=device)[:, None]
+    j = torch.arange(keys, device=device)[None, :]
+    allowed = j <= i
+    if math.isfinite(band):
+        allowed &= i - j <= band
+    return allowed
+
+
+class MultiHeadAttention(nn.Module):
+    """Scaled dot-product attention with free widths: queries (.., query_width) and keys / values (.., key_width) are
+    projected to ``heads`` x ``head_width``; the concatenated heads are projected to ``out_width``. Used for every
+    attention of this file (SGSA: head_width = S; cross-attention: S -> E; PT: the standard W / h heads)."""
+
+    def __init__(self, query_width: int, key_width: int, heads: int, head_width: int, out_width: int,
+                 dropout: float):
+        super().__init__()
+        self.heads, self.head_width = heads, head_width
+        self.q = nn.Linear(query_width, heads * head_width)
+        self.k = nn.Linear(key_width, heads * head_width)
+        self.v = nn.Linear(key_width, heads * head_width)
+        self.out = nn.Linear(heads * head_width, out_width)
+        self.dropout = nn.Dropout(dropout)
+
+    def split(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, T, h * d) -> (B, h, T, d)."""
+        return x.unflatten(-1, (self.heads, self.head_width)).transpose(1, 2)
+
+    def forward(self, query: torch.Tensor, key: torch.Tensor | None, value: torch.Tensor | None,
+                allowed: torch.Tensor | None = None, need_weights: bool = False,
+                cached: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """query (B, Tq, .), key / value (B, Tk, .), allowed (B or 1, Tq, Tk) bool (True = may attend) ->
+        (B, Tq, out_width) and the weights (B, h, Tq, Tk) when asked. Masked weights are exactly 0; a row with no
+        allowed key gets all-zero weights (its output is the output bias). ``cached``: keys and values already
+        projected and split (B, h, Tk, d), ``key`` / ``value`` unused."""
+        q = self.split(self.q(query))
+        k, v = cached if cached is not None else (self.split(self.k(key)), self.split(self.v(value)))
+        scores = q @ k.transpose(-1, -2) / math.sqrt(self.head_width)
+        if allowed is not None:
+            allowed = allowed[:, None]  # broadcast over heads
+            empty = ~allowed.any(-1, keepdim=True)
+            # fully masked rows are opened before the softmax (no NaN) and zeroed after it
+            weights = torch.softmax(scores.masked_fill(~(allowed | empty), -math.inf), dim=-1)
+            weights = weights.masked_fill(empty, 0.0)
+        else:
+            weights = torch.softmax(scores, dim=-1)
+        context = (self.dropout(weights) @ v).transpose(1, 2).flatten(2)
+        return self.out(context), (weights if need_weights else None)
+
+
+    def step(self, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, cache: dict[str, torch.Tensor],
+             window: float = math.inf) -> torch.Tensor:
+        """Incremental self-attention of generation: one new frame (B, 1, .) appends its key / value to ``cache``
+        and attends to the cached frames of the last ``window`` steps and itself (the causal band of
+        :func:`causal_band`); the cache keeps no more than it can use. -> (B, 1, out_width)."""
+        k, v = self.split(self.k(key)), self.split(self.v(value))
+        keys = k if "k" not in cache else torch.cat([cache["k"], k], dim=2)
+        values = v if "v" not in cache else torch.cat([cache["v"], v], dim=2)
+        if math.isfinite(window):
+            keys, values = keys[:, :, -(int(window) + 1):], values[:, :, -(int(window) + 1):]
+        cache["k"], cache["v"] = keys, values
+        q = self.split(self.q(query))
+        weights = torch.softmax(q @ keys.transpose(-1, -2) / math.sqrt(self.head_width), dim=-1)
+        return self.out((weights @ values).transpose(1, 2).flatten(2))
+
+    def cross_step(self, query: torch.Tensor, memory: torch.Tensor, allowed: torch.Tensor,
+                   cache: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Cross-attention of one new frame over the memory, whose keys / values are projected once per
+        generation and kept in ``cache``. allowed (B, 1, K) -> (B, 1, out_width)."""
+        if "mk" not in cache:
+            cache["mk"], cache["mv"] = self.split(self.k(memory)), self.split(self.v(memory))
+        return self(query, None, None, allowed, cached=(cache["mk"], cache["mv"]))[0]
+
+
+class SkeletalGraphSelfAttention(nn.Module):
+    """SGSA Eq. 8 with h heads of full width S: softmax(x W_Q (x W_K)^T / sqrt(S)) x A* W_V per head, concatenated
+    h x S -> S. The values mix coordinate j of each frame only from the coordinates k with A*[k, j] != 0 (x A* is a
+    row vector times A*). Query frame i attends to key frames i - N .. i (N = ``band``, math.inf = plain causal)."""
+
+    def __init__(self, width: int, heads: int, adjacency: torch.Tensor, band: float, dropout: float):
+        super().__init__()
+        adjacency = torch.as_tensor(adjacency, dtype=torch.float32)
+        if adjacency.shape != (width, width):
+            raise ValueError(f"SGSA adjacency: expected ({width}, {width}), got {tuple(adjacency.shape)}")
+        self.band = float(band)
+        self.register_buffer("adjacency", adjacency.clone())  # A*, fixed, kept in the state dict
+        self.attention = MultiHeadAttention(width, width, heads, width, width, dropout)
+
+    def values(self, x: torch.Tensor) -> torch.Tensor:
+        """V_A = x A* W_V per head: (B, U, S) -> (B, h, U, S)."""
+        return self.attention.split(self.attention.v(x @ self.adjacency))
+
+    def forward(self, x: torch.Tensor, pad_mask: torch.Tensor | None = None,
+                need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """x (B, U, S), pad_mask (B, U) True on real frames -> (B, U, S) and the weights (B, h, U, U) if asked."""
+        u = x.shape[1]
+        allowed = causal_band(u, u, self.band, x.device)[None]
+        if pad_mask is not None:
+            allowed = allowed & pad_mask[:, None, :]
+        return self.attention(x, x, x @ self.adjacency, allowed, need_weights)
+
+
+class SGSADecoderLayer(nn.Module):
+    """One post-norm SGSA decoder layer of width S (Sec. 4.2): SGSA, encoder-decoder attention, feed-forward S."""
+
+    def __init__(self, width: int, memory_width: int, heads: int, adjacency: torch.Tensor, band: float,
+                 dropout: float):
+        super().__init__()
+        self.self_attn = SkeletalGraphSelfAttention(width, heads, adjacency, band, dropout)
+        self.cross_attn = MultiHeadAttention(width, memory_width, heads, memory_width // heads, width, dropout)
+        self.ffn = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Dropout(dropout), nn.Linear(width, width))
+        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(width), nn.LayerNorm(width), nn.LayerNorm(width)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, frame_mask: torch.Tensor | None,
+                memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """x (B, U, S), memory (B, K, E), memory_allowed (B, 1, K) -> (B, U, S), self-attention weights if asked."""
+        a, weights = self.self_attn(x, frame_mask, need_weights)
+        x = self.norm1(x + self.dropout(a))
+        x = self.norm2(x + self.dropout(self.cross_attn(x, memory, memory, memory_allowed)[0]))
+        return self.norm3(x + self.dropout(self.ffn(x))), weights
+
+
+    def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
+             cache: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The layer for one new frame x (B, 1, S) of generation, with the earlier frames' keys / values in
+        ``cache``: the same numbers as :meth:`forward` on the whole prefix, at the cost of one frame."""
+        sa = self.self_attn
+        x = self.norm1(x + sa.attention.step(x, x, x @ sa.adjacency, cache, sa.band))
+        x = self.norm2(x + self.cross_attn.cross_step(x, memory, memory_allowed, cache))
+        return self.norm3(x + self.ffn(x))
+
+
+class StandardDecoderLayer(nn.Module):
+    """A standard post-norm transformer decoder layer (PT; the math of nn.TransformerDecoderLayer with ReLU and
+    norm_first=False): causal self-attention, cross-attention over the memory, feed-forward."""
+
+    def __init__(self, width: int, heads: int, ffn: int, dropout: float):
+        super().__init__()
+        self.self_attn = MultiHeadAttention(width, width, heads, width // heads, width, dropout)
+        self.cross_attn = MultiHeadAttention(width, width, heads, width // heads, width, dropout)
+        self.ffn = nn.Sequential(nn.Linear(width, ffn), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ffn, width))
+        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(width), nn.LayerNorm(width), nn.LayerNorm(width)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, self_allowed: torch.Tensor,
+                memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """x (B, U, W), memory (B, K, W), self_allowed (B or 1, U, U), memory_allowed (B, 1, K) -> (B, U, W)."""
+        a, weights = self.self_attn(x, x, x, self_allowed, need_weights)
+        x = self.norm1(x + self.dropout(a))
+        x = self.norm2(x + self.dropout(self.cross_attn(x, memory, memory, memory_allowed)[0]))
+        return self.norm3(x + self.dropout(self.ffn(x))), weights
+
+
+    def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
+             cache: dict[str, torch.Tensor]) -> torch.Tensor:
+        """One new frame x (B, 1, W) of generation with a key / value cache (see SGSADecoderLayer.step)."""
+        x = self.norm1(x + self.self_attn.step(x, x, x, cache))
+        x = self.norm2(x + self.cross_attn.cross_step(x, memory, memory_allowed, cache))
+        return self.norm3(x + self.ffn(x))
+
+
+class SGSAProduction(nn.Module):
+    """Text ids -> skeleton frames: SGSA (``cfg.decoder_layers >= 1``) or PT (``cfg.decoder_layers == 0``)."""
+
+    def __init__(self, cfg: SGSAConfig, dims: SGSADims, adjacency: np.ndarray | torch.Tensor | None):
+        super().__init__()
+        self.cfg, self.dims = cfg, dims
+        e, s = cfg.encoder_width, dims.width
+        self.text_embedding = nn.Embedding(dims.text_vocab, e, padding_idx=0)
+        encoder_layer = nn.TransformerEncoderLayer(e, cfg.encoder_heads, cfg.encoder_ffn, cfg.dropout,
+                                                   batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(encoder_layer, cfg.encoder_layers, norm=nn.LayerNorm(e),
+                                             enable_nested_tensor=False)
+        self.gloss_head = nn.Linear(e, dims.gloss_vocab) if dims.gloss_vocab > 0 else None
+        self.dropout = nn.Dropout(cfg.dropout)
+        if cfg.decoder_layers > 0:
+            if adjacency is None:
+                raise ValueError("SGSA (decoder_layers > 0) needs the (S, S) normalised adjacency A*")
+            if e % cfg.decoder_heads:
+                raise ValueError(f"sgsa.encoder_width {e} is not divisible by decoder_heads {cfg.decoder_heads} "
+                                 "(the cross-attention heads)")
+            a = torch.as_tensor(adjacency, dtype=torch.float32)
+            self.layers = nn.ModuleList(SGSADecoderLayer(s, e, cfg.decoder_heads, a, cfg.band, cfg.dropout)
+                                        for _ in range(cfg.decoder_layers))
+            self.frame_embedding = self.memory_projection = None
+            self.output = nn.Linear(s, s)
+        else:
+            w = cfg.standard_width
+            self.frame_embedding = nn.Linear(s, w)
+            self.memory_projection = nn.Linear(e, w) if e != w else None
+            self.layers = nn.ModuleList(StandardDecoderLayer(w, cfg.decoder_heads, cfg.standard_ffn, cfg.dropout)
+                                        for _ in range(cfg.standard_layers))
+            self.output = nn.Linear(w, s)
+        # derived from the config, so kept out of the state dict; longer inputs get a fresh table
+        self.register_buffer("text_positions", sinusoid_table(cfg.max_text_tokens + 2, e), persistent=False)
+        if self.frame_embedding is not None:
+            self.register_buffer("frame_positions", sinusoid_table(cfg.max_frames + 1, cfg.standard_width),
+                                 persistent=False)
+        for p in self.parameters():  # Xavier initialisation (SGSA Sec. 5)
+            if p.dim() > 1:
+                nn.init.xavier_uniform_(p)
+        with torch.no_grad():
+            self.text_embedding.weight[0].zero_()  # PAD stays a zero vector (it gets no gradient)
+
+    @staticmethod
+    def _positions(table: torch.Tensor, length: int) -> torch.Tensor:
+        """The first ``length`` rows of a sinusoid table, computed afresh past its end."""
+        if length <= table.shape[0]:
+            return table[:length]
+        return sinusoid_table(length, table.shape[1]).to(table)
+
+    def encode(self, text_ids: torch.Tensor, text_mask: torch.Tensor) -> torch.Tensor:
+        """text_ids (B, K), text_mask (B, K) True on real tokens -> memory (B, K, E)."""
+        e = self.cfg.encoder_width
+        x = self.text_embedding(text_ids) * math.sqrt(e) + self._positions(self.text_positions, text_ids.shape[1])
+        return self.encoder(self.dropout(x), src_key_padding_mask=~text_mask)
+
+    def gloss_logits(self, memory: torch.Tensor) -> torch.Tensor | None:
+        """(B, K, G) CTC logits of the gloss head (class 0 = blank), None without one."""
+        return None if self.gloss_head is None else self.gloss_head(memory)
+
+    def _decode(self, memory: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,
+                frame_mask: torch.Tensor | None, weights_of: int | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """decode, and the self-attention weights (B, h, U, U) of layer ``weights_of`` when not None."""
+        memory_allowed = text_mask[:, None, :]
+        weights = None
+        if self.frame_embedding is None:  # SGSA: the frames go in as they are
+            x = frames_in
+            for i, layer in enumerate(self.layers):
+                x, w = layer(x, memory, frame_mask, memory_allowed, need_weights=i == weights_of)
+                weights = w if i == weights_of else weights
+        else:  # PT
+            u = frames_in.shape[1]
+            x = self.dropout(self.frame_embedding(frames_in) + self._positions(self.frame_positions, u))
+            if self.memory_projection is not None:
+                memory = self.memory_projection(memory)
+            self_allowed = causal_band(u, u, math.inf, x.device)[None]
+            if frame_mask is not None:
+                self_allowed = self_allowed & frame_mask[:, None, :]
+            for i, layer in enumerate(self.layers):
+                x, w = layer(x, memory, self_allowed, memory_allowed, need_weights=i == weights_of)
+                weights = w if i == weights_of else weights
+        return self.output(x), weights
+
+    def decode(self, memory: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,
+               frame_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """memory (B, K, E), text_mask (B, K), frames_in (B, U, S) (start frame then the previous targets, see the
+        module docstring), frame_mask (B, U) True on real frames -> predicted next frames (B, U, S)."""
+        return self._decode(memory, text_mask, frames_in, frame_mask, None)[0]
+
+    def forward(self, text_ids: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,
+                frame_mask: torch.Tensor | None = None) -> SGSAOutput:
+        memory = self.encode(text_ids, text_mask)
+        return SGSAOutput(self.decode(memory, text_mask, frames_in, frame_mask), self.gloss_logits(memory))
+
+    @contextmanager
+    def _evaluating(self) -> Iterator[None]:
+        """eval mode (no dropout) for the duration, the previous mode restored after."""
+        was_training = self.training
+        self.eval()
+        try:
+            yield
+        finally:
+            self.train(was_training)
+
+    @torch.no_grad()
+    def generate(self, text_ids: torch.Tensor, text_mask: torch.Tensor, max_frames: int,
+                 true_lengths: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """Autoregressive counter decoding in eval mode: text_ids / text_mask (B, K) -> per sequence the produced
+        frames (U_b, S), counter included. A sequence stops at its first frame t (1-based) whose counter reaches
+        1 - 0.5 / t, or after ``max_frames``. With ``true_lengths`` (B,) (ground-truth counter: parity with published
+        PT numbers only) sequence b runs exactly U_b = true_lengths[b] frames (max_frames is not applied) and the
+        counter of its produced frame t (1-based) is overwritten by the true t / U_b before it is fed back.
+        Finished sequences are dropped from the batch, so nothing of theirs changes after they stop."""
+        b, s = text_ids.shape[0], self.dims.width
+        with self._evaluating():
+            memory = self.encode(text_ids, text_mask)
+            if true_lengths is not None:
+                true_lengths = torch.as_tensor(true_lengths, device=text_ids.device).long().reshape(b)
+                if (true_lengths < 1).any():
+                    raise ValueError(f"generate: true_lengths must be >= 1, got {true_lengths.tolist()}")
+                steps = int(true_lengths.max()) if b else 0
+            else:
+                steps = max_frames
+            if self.memory_projection is not None:
+                memory = self.memory_projection(memory)
+            allowed = text_mask[:, None, :]
+            caches: list[dict[str, torch.Tensor]] = [{} for _ in self.layers]  # per layer: keys / values so far
+            frame = torch.zeros(b, 1, s, device=memory.device, dtype=memory.dtype)  # the start frame
+            produced = torch.zeros(b, steps, s, device=memory.device, dtype=memory.dtype)
+            lengths = torch.full((b,), steps, dtype=torch.long, device=memory.device)
+            active = torch.arange(b, device=memory.device)  # unfinished sequences; finished ones are not re-run
+            for t in range(1, steps + 1):
+                if not len(active):
+                    break
+                pred = self._step(frame, t - 1, memory, allowed, caches)[:, 0]  # (B_active, S)
+                if true_lengths is not None:
+                    pred[:, -1] = t / true_lengths[active].to(pred.dtype)
+                    done = true_lengths[active] == t
+                else:
+                    done = pred[:, -1] >= 1.0 - 0.5 / t
+                produced[active, t - 1] = pred
+                lengths[active[done]] = t
+                keep = ~done
+                active, frame, memory, allowed = active[keep], pred[keep, None], memory[keep], allowed[keep]
+                for cache in caches:
+                    for key in cache:
+                        cache[key] = cache[key][keep]
+        return [produced[i, : int(lengths[i])] for i in range(b)]
+
+    def _step(self, frame: torch.Tensor, position: int, memory: torch.Tensor, allowed: torch.Tensor,
+              caches: list[dict[str, torch.Tensor]]) -> torch.Tensor:
+        """The decoder on one new input frame (B, 1, S) at ``position`` (0 = the start frame), the earlier frames
+        in ``caches``; memory already projected for PT -> the predicted next frame (B, 1, S)."""
+        if self.frame_embedding is None:
+            x = frame
+        else:
+            x = self.frame_embedding(frame) + self._positions(self.frame_positions, position + 1)[position]
+        for layer, cache in zip(self.layers, caches):
+            x = layer.step(x, memory, allowed, cache)
+        return self.output(x)
+
+
+    @torch.no_grad()
+    def self_attention(self, text_ids: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,
+                       layer: int) -> torch.Tensor:
+        """(B, h, U, U) self-attention weights of decoder layer ``layer`` (0-based; SGSA or PT layer), teacher forced
+        on frames_in (B, U, S), in eval mode: for an attention-map picture."""
+        if not 0 <= layer < len(self.layers):
+            raise ValueError(f"self_attention: layer {layer} out of range 0..{len(self.layers) - 1}")
+        with self._evaluating():
+            memory = self.encode(text_ids, text_mask)
+            return self._decode(memory, text_mask, frames_in, None, layer)[1]

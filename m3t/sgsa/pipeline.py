@@ -1,0 +1,279 @@
+"""The skeletal production runs behind the train-sgsa and evaluate-sgsa stages, over the fitted shards of
+``data.train_corpora`` seen as skeletons (:mod:`m3t.shards.skeletons`, graph ``sgsa.skeleton``).
+
+- :func:`train_and_log`: every system of ``sgsa_train.systems`` (``pt``: Progressive Transformers, ``sgsa``: the
+  configured SGSA model) on the train split, selected on the dev split's DTW-JPE; writes
+  ``<models>/sgsa/<system>.pt``, ``metrics.json`` and ``skipped.jsonl``.
+- :func:`evaluate_and_log`: SGSA Tab. 1-3 and the cross-paper comparison. For each split of
+  ``sgsa_evaluate.splits`` and each trained system: generation (predicted counter by default), DTW-JPE /
+  DTW-PA-JPE per region against the reference skeletons, and the back-translation of the sentence clips by the
+  frozen **skeleton judge** (``<models>/backtranslation-skeleton``, SL-T definition) with BLEU-1..4 / ROUGE-L.
+  The same judges score the ground truth (the upper bound) and, on the split generate-smlm produced, the M3T
+  SMLM's motion posed into the same skeleton (``smlm``): one table, one corpus, one split, one judge.
+  Writes ``<metrics>/sgsa/metrics.json`` (``<system>/<split>/<metric>``), ``per_clip.csv``,
+  ``backtranslation.csv``, side-by-side skeleton videos and an attention-map picture.
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from m3t.atomic import copy_file, write_json, write_jsonl, write_text
+from m3t.backtranslation.config import BackTranslationConfig
+from m3t.backtranslation.pipeline import backtranslate, per_clip_csv
+from m3t.body.factory import BodyConfig, load_body_model
+from m3t.body.protocol import BodyModel
+from m3t.body.skeleton import SkeletonGraph, graph_for, regions
+from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.metrics.scorer import PointPair, score_point_pairs
+from m3t.metrics.text import SLT_DEFINITION
+from m3t.shards.folders import DataConfig
+from m3t.shards.io import data_version, read_split
+from m3t.shards.skeletons import SKELETON_STREAM, graph_points, skeleton_clips
+from m3t.sgsa.checkpoint import STAGE, LoadedSGSA, load_sgsa
+from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
+from m3t.sgsa.data import Sample, collate, make_samples, vocabularies
+from m3t.sgsa.evaluate import SELECTION_METRIC, generate, produced_points, score_production
+from m3t.sgsa.train import run_key, train_sgsa
+
+SMLM_SYSTEM = "smlm"  # the M3T SMLM's generated motion, posed into the same skeleton
+REFERENCE = "ground_truth"  # the fitted motion itself: the judges' upper bound
+
+
+def checkpoint_name(system: str) -> str:
+    return f"{system}.pt"
+
+
+# ------------------------------------------------------------------------------------------ train
+def run_train(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body: BodyModel, data: DataConfig, on_epoch=None,
+              progress: bool = True) -> dict[str, float]:
+    """Train every system of ``cfg.systems``; ``on_epoch(system, record, epoch)`` sees each epoch's record."""
+    graph = graph_for(model_cfg.skeleton, model_cfg.face_points)
+    train_clips = skeleton_clips(body, read_split(data.shards_dirs, "train"), graph, progress, "skeletons: train")
+    dev_clips = skeleton_clips(body, read_split(data.shards_dirs, "dev"), graph, progress, "skeletons: dev")
+    if not train_clips:
+        raise ValueError(f"the train split of {list(data.train_corpora)} has no clip with frames")
+    text_vocab, gloss_vocab = vocabularies(train_clips, model_cfg)
+    train = make_samples(train_clips, text_vocab, gloss_vocab, model_cfg, training=True)
+    dev = make_samples(dev_clips, text_vocab, gloss_vocab, model_cfg, training=False)
+    version = data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")])
+    out = data.sgsa_dir
+    report: dict[str, float] = {"train_clips": float(len(train.samples)), "dev_clips": float(len(dev.samples)),
+                                "skipped_clips": float(len(train.skipped) + len(dev.skipped)),
+                                "cut_frames": float(train.cut_frames), "skeleton_width": float(graph.width + 1),
+                                "text_vocabulary_size": float(len(text_vocab)),
+                                "gloss_vocabulary_size": float(0 if gloss_vocab is None else len(gloss_vocab))}
+    for system in cfg.systems:
+        system_cfg = model_cfg.for_system(system)
+        key = run_key(system_cfg, cfg, graph, text_vocab, gloss_vocab, version)
+        best, last = Path(cfg.cache_dir) / f"{key}.best.pt", Path(cfg.cache_dir) / f"{key}.last.pt"
+        result = train_sgsa(system_cfg, cfg, graph, text_vocab, gloss_vocab, train.samples, dev.samples, version,
+                            best, last, progress=progress,
+                            on_epoch=None if on_epoch is None else
+                            lambda record, epoch, s=system: on_epoch(s, record, epoch))
+        copy_file(best, out / checkpoint_name(system))
+        parameters = sum(p.numel() for p in result.model.parameters() if p.requires_grad)
+        report.update({f"{system}/parameters": float(parameters),
+                       f"{system}/best_epoch": float(result.best.get("epoch", 0)),
+                       **{f"{system}/best_{k}": float(v) for k, v in result.best.items()
+                          if k.startswith(("val_", "train_"))}})
+    for stale in out.glob("*.pt"):
+        if stale.name not in {checkpoint_name(s) for s in cfg.systems}:
+            stale.unlink()
+    write_json(out / "metrics.json", report)
+    write_jsonl(out / "skipped.jsonl", train.skipped + dev.skipped)
+    return report
+
+
+def train_and_log(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body_cfg: BodyConfig, data: DataConfig,
+                  experiment: ExperimentConfig, progress: bool = True) -> dict[str, float]:
+    """:func:`run_train` inside an MLflow run (params, per-epoch curves per system, the written files)."""
+    body = load_body_model(body_cfg)
+    tags = {"variant": model_cfg.variant, "systems": ",".join(cfg.systems), "skeleton": model_cfg.skeleton}
+    with start_run(experiment, STAGE, tags=tags) as run:
+        run.log_params(section_params(sgsa=model_cfg, sgsa_train=cfg, data=data))
+        report = run_train(model_cfg, cfg, body, data, progress=progress,
+                           on_epoch=lambda system, record, epoch: run.log_metrics(
+                               {f"{system}/{k}": v for k, v in record.items()}, step=epoch))
+        run.log_metrics(report)
+        for name in ("metrics.json", "skipped.jsonl"):
+            run.log_artifact(data.sgsa_dir / name)
+    return report
+
+
+# --------------------------------------------------------------------------------------- evaluate
+@dataclass
+class EvaluationSet:
+    split: str
+    samples: list[Sample]  # every clip with text and frames (text cut to the limit, counted)
+    skipped: list[dict]
+    cut_text: int
+
+
+def load_systems(data: DataConfig, device: str = "cpu") -> dict[str, LoadedSGSA]:
+    files = sorted(data.sgsa_dir.glob("*.pt")) if data.sgsa_dir.is_dir() else []
+    if not files:
+        raise FileNotFoundError(f"no SGSA / PT checkpoint in {data.sgsa_dir}; run `dvc repro {STAGE}` "
+                                "(python -m m3t.stages.train_sgsa) first")
+    return {path.stem: load_sgsa(path, device) for path in files}
+
+
+def _smlm_params(data: DataConfig, split: str, body: BodyModel) -> dict[str, dict[str, np.ndarray]] | None:
+    """clip id -> the SMLM's generated parameters (frozen tokenizers' decoding; the rest pose for an empty
+    generation), when generate-smlm produced ``split``; None otherwise."""
+    from m3t.shards.tokens import read_token_shard
+    from m3t.tokenizers.evaluate import decode_streams
+    from m3t.tokenizers.tokenize import load_tokenizers
+
+    path = data.generated / "generated.parquet"
+    if not path.exists():
+        return None
+    shard = read_token_shard(path)
+    if not shard.clips or shard.clips[0].clip.split != split:
+        return None
+    tokenizers, _ = load_tokenizers(data.tokenizers_dir)
+    rest = {k: v.detach().cpu().numpy() for k, v in body.rest_params(1).items()}
+    return {c.clip.id: decode_streams(tokenizers, dict(c.tokens)) if c.num_tokens else rest for c in shard.clips}
+
+
+def _judge(judge_dir: Path, rows: dict[str, tuple[str, np.ndarray]], texts: dict[str, str],
+           judge: BackTranslationConfig):
+    """Back-translate {clip id: (language, (T, C) normalised coordinates)} with the skeleton judge."""
+    clips = {cid: (language, {SKELETON_STREAM: coords}) for cid, (language, coords) in rows.items()}
+    return backtranslate(judge_dir, clips, texts, judge.beam_size, judge.length_penalty)
+
+
+def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel, data: DataConfig,
+                 judge: BackTranslationConfig | None = None, progress: bool = True) -> dict[str, float]:
+    """Score every trained system (and the SMLM and the ground truth) on ``cfg.splits``; see the module docstring."""
+    from m3t.body.skeleton import normalise
+    from m3t.render.skeleton_video import render_attention_map, render_skeleton_video
+    from m3t.runtime import choose_device
+
+    judge = judge or BackTranslationConfig()
+    device = str(choose_device(cfg.device))
+    systems = load_systems(data, device)
+    graphs = {s.graph.to_dict().__repr__() for s in systems.values()}
+    if len(graphs) != 1:
+        raise ValueError(f"the checkpoints of {data.sgsa_dir} use different skeleton graphs; retrain them together")
+    first = next(iter(systems.values()))
+    graph: SkeletonGraph = first.graph
+    summary: dict[str, float] = {}
+    per_clip: list[dict] = []
+    bt_rows: list[dict] = []
+    skipped: list[dict] = []
+    out = data.metrics("sgsa")
+    videos: dict[str, dict[str, np.ndarray]] = {}
+    shown: list[Sample] = []
+    for split in cfg.splits:
+        clips = skeleton_clips(body, read_split(data.shards_dirs, split), graph, progress, f"skeletons: {split}")
+        sets = make_samples(clips, first.text_vocab, first.gloss_vocab, model_cfg, training=False)
+        samples = sets.samples
+        skipped.extend(sets.skipped)
+        summary[f"{split}/clips"] = float(len(samples))
+        summary[f"{split}/cut_text"] = float(sets.cut_text)
+        sentences = [s for s in samples if s.sentence]
+        texts = {s.clip_id: s.clip.fitted.clip.text for s in sentences}
+        produced_by: dict[str, dict[str, np.ndarray]] = {}  # system -> clip id -> (U, J, 3) metres
+        for name, loaded in systems.items():
+            frames = generate(loaded.model, samples, loaded.text_vocab, loaded.model.cfg.max_frames, cfg.counter,
+                              cfg.batch_size)
+            report = score_production(samples, frames, graph, loaded.model.cfg.max_frames, progress)
+            summary.update({f"{name}/{split}/{k}": v for k, v in report.summary.items()})
+            per_clip.extend({"system": name, "split": split, **row} for row in report.per_clip)
+            produced_by[name] = {cid: produced_points(f, graph, s.clip.scale)
+                                 for s in samples for cid, f in [(s.clip_id, frames[s.clip_id])]}
+            if cfg.backtranslate and sentences:
+                judged = _judge(data.skeleton_judge_dir,
+                                {s.clip_id: (s.language, frames[s.clip_id][:, :-1]) for s in sentences}, texts, judge)
+                summary.update({f"{name}/{split}/bt/{k}": v for k, v in judged.summary.items()})
+                bt_rows.extend({"system": name, "split": split, **r} for r in judged.per_clip)
+        smlm = _smlm_params(data, split, body)
+        if smlm is not None:
+            by_id = {s.clip_id: s for s in samples}
+            scored = [s for s in samples if s.clip_id in smlm]
+            points = {s.clip_id: graph_points(body, smlm[s.clip_id], s.clip.fitted.identity, graph) for s in scored}
+            scores = score_point_pairs([PointPair(s.clip_id, s.group, len(points[s.clip_id]),
+                                                  regions(points[s.clip_id], graph), regions(s.clip.points, graph))
+                                        for s in scored])
+            summary.update({f"{SMLM_SYSTEM}/{split}/{k}": v for k, v in scores.summary.items()})
+            summary[f"{SMLM_SYSTEM}/{split}/{SELECTION_METRIC}"] = 0.5 * (
+                scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
+            summary[f"{SMLM_SYSTEM}/{split}/clips"] = float(len(scored))
+            per_clip.extend({"system": SMLM_SYSTEM, "split": split, "clip_id": c.clip_id, "group": c.group,
+                             "frames": c.frames, "reference_frames": len(by_id[c.clip_id].clip.points), **c.metrics}
+                            for c in scores.per_clip)
+            produced_by[SMLM_SYSTEM] = points
+            smlm_sentences = [s for s in sentences if s.clip_id in smlm]
+            if cfg.backtranslate and smlm_sentences:
+                judged = _judge(data.skeleton_judge_dir, {s.clip_id: (s.language, normalise(points[s.clip_id], graph)[0])
+                                                          for s in smlm_sentences},
+                                {s.clip_id: texts[s.clip_id] for s in smlm_sentences}, judge)
+                summary.update({f"{SMLM_SYSTEM}/{split}/bt/{k}": v for k, v in judged.summary.items()})
+                bt_rows.extend({"system": SMLM_SYSTEM, "split": split, **r} for r in judged.per_clip)
+        if cfg.backtranslate and sentences:
+            judged = _judge(data.skeleton_judge_dir, {s.clip_id: (s.language, s.clip.coords) for s in sentences},
+                            texts, judge)
+            summary.update({f"{REFERENCE}/{split}/bt/{k}": v for k, v in judged.summary.items()})
+            bt_rows.extend({"system": REFERENCE, "split": split, **r} for r in judged.per_clip)
+        if split == cfg.splits[-1]:
+            shown = samples[: cfg.render_clips]
+            for s in shown:
+                videos[s.clip_id] = {"reference": s.clip.points,
+                                     **{name: produced[s.clip_id] for name, produced in produced_by.items()
+                                        if s.clip_id in produced}}
+    write_json(out / "metrics.json", summary)
+    write_text(out / "per_clip.csv", _csv(per_clip))
+    write_text(out / "backtranslation.csv", _bt_csv(bt_rows))
+    write_jsonl(out / "skipped.jsonl", skipped)
+    for cid, sequences in videos.items():
+        fps = next(s.clip.fitted.clip.fps for s in samples if s.clip_id == cid) if samples else 25.0
+        render_skeleton_video(sequences, graph, out / "videos" / f"{cid}.gif", fps=fps, title=cid)
+    attention = next((s for s in systems if systems[s].model.cfg.decoder_layers > 0), None)
+    if attention is not None and shown:
+        loaded = systems[attention]
+        layer = loaded.model.cfg.decoder_layers - 1
+        batch = collate(shown[:1], loaded.text_vocab).to(loaded.model_device)
+        weights = loaded.model.self_attention(batch.text_ids, batch.text_mask, batch.frames_in, layer)[0]
+        render_attention_map(weights.cpu().numpy(), out / "attention.png",
+                             f"{loaded.model.cfg.variant}: self-attention of layer {layer + 1}, clip {shown[0].clip_id} "
+                             "(teacher forced)")
+    return summary
+
+
+def _csv(rows: list[dict]) -> str:
+    import pandas as pd
+
+    buffer = io.StringIO()
+    pd.DataFrame(rows).to_csv(buffer, index=False)
+    return buffer.getvalue()
+
+
+def _bt_csv(rows: list[dict]) -> str:
+    body = per_clip_csv([{k: v for k, v in r.items() if k not in ("system", "split")} for r in rows])
+    lines = body.splitlines()
+    if not lines:
+        return ""
+    return "\n".join(["system,split," + lines[0]] + [f"{r['system']},{r['split']},{line}"
+                                                      for r, line in zip(rows, lines[1:])]) + "\n"
+
+
+def evaluate_and_log(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body_cfg: BodyConfig, data: DataConfig,
+                     experiment: ExperimentConfig, judge: BackTranslationConfig | None = None) -> dict[str, float]:
+    summary = run_evaluate(model_cfg, cfg, load_body_model(body_cfg), data, judge)
+    trained = data.sgsa_dir / checkpoint_name("sgsa")
+    seed = load_sgsa(trained).train_config.get("seed", "") if trained.exists() else ""
+    tags = {"variant": model_cfg.variant, "counter": cfg.counter, "splits": ",".join(cfg.splits), "seed": str(seed),
+            "text_metric_definition": SLT_DEFINITION, "motion_metric_definition": "soke-dtw (skeleton)"}
+    with start_run(experiment, "evaluate-sgsa", tags=tags) as run:
+        run.log_params(section_params(sgsa=model_cfg, sgsa_evaluate=cfg, data=data))
+        run.log_metrics({k: v for k, v in summary.items() if v == v and abs(v) != float("inf")})
+        out = data.metrics("sgsa")
+        for name in ("metrics.json", "per_clip.csv", "backtranslation.csv"):
+            run.log_artifact(out / name)
+        for path in sorted((out / "videos").glob("*.gif")) + sorted(out.glob("attention.png")):
+            run.log_artifact(path, "renders")
+    return summary

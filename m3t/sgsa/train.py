@@ -1,0 +1,130 @@
+"""Training one skeletal production model, SGSA or its PT baseline (SGSA Sec. 4.2 / 5, Progressive Transformers).
+
+Loss: MSE between predicted and ground-truth frames (skeleton coordinates and counter, real frames only) plus
+``gloss_weight`` x the CTC loss of the encoder's gloss head over the clips that have glosses (gloss supervision).
+Teacher forcing with **Gaussian noise augmentation** (PT): the previous frames fed to the decoder get noise
+``N(0, 1) x noise_rate x std_d``, where ``std_d`` is the per-coordinate standard deviation of the previous
+epoch's prediction error (none in the first epoch; the counter column is never perturbed). Adam at ``lr`` with
+default betas, ReduceLROnPlateau on the dev DTW-JPE, gradient clipping; the checkpoint with the lowest dev
+``dtw_jpe_mean_m`` (generated with the predicted counter) is ``best``. A resumable ``last`` is written every epoch
+(:class:`m3t.training.EpochTail`), the noise statistics with it: a killed run continues the same curve.
+
+Axis legend: B batch, U frames, S skeleton width with counter, K text tokens, G glosses.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from m3t.backtranslation.data import epoch_batches
+from m3t.backtranslation.text import Vocabulary
+from m3t.body.skeleton import SkeletonGraph
+from m3t.runtime import choose_device
+from m3t.sgsa.checkpoint import build_model, load_sgsa, save_sgsa
+from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
+from m3t.sgsa.data import Batch, Sample, collate
+from m3t.sgsa.evaluate import SELECTION_METRIC, ProductionEvaluator
+from m3t.sgsa.model import SGSAProduction
+from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, optimizer_step, run_digest
+
+TRAIN_VERSION = "sgsa-v1"  # part of the resume key: bump when older training state becomes invalid
+
+
+def run_key(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
+            gloss_vocab: Vocabulary | None, data_version: str) -> str:
+    """What a resumable ``last`` must agree on: code version, model and training settings (not the cache folder or
+    the device), graph, vocabularies and data."""
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
+    return run_digest(TRAIN_VERSION, dataclasses.asdict(model_cfg), settings, graph.to_dict(), text_vocab.to_dict(),
+                      None if gloss_vocab is None else gloss_vocab.to_dict(), data_version)
+
+
+def losses(model: SGSAProduction, batch: Batch, gloss_weight: float,
+           noise_std: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """``({"loss", "skeleton_loss"[, "gloss_ctc_loss"]}, errors)``: errors (N, S) = prediction - target of the
+    real frames (for the next epoch's noise)."""
+    frames_in = batch.frames_in
+    if noise_std is not None:
+        noise = torch.randn_like(frames_in) * noise_std
+        noise[..., -1] = 0.0  # the counter is progress, not pose: never perturbed
+        frames_in = frames_in + noise
+    out = model(batch.text_ids, batch.text_mask, frames_in, batch.frame_mask)
+    err = (out.frames - batch.target)[batch.frame_mask]  # (N, S)
+    skeleton = err.pow(2).mean()
+    result = {"loss": skeleton, "skeleton_loss": skeleton}
+    rows = batch.gloss_lengths > 0
+    if out.gloss_logits is not None and gloss_weight > 0 and bool(rows.any()):
+        log_probs = out.gloss_logits[rows].float().log_softmax(-1).transpose(0, 1)  # (K, B', G)
+        ctc = F.ctc_loss(log_probs, batch.glosses[rows], batch.text_mask[rows].sum(1), batch.gloss_lengths[rows],
+                         blank=0, reduction="mean", zero_infinity=True)
+        result.update(loss=skeleton + gloss_weight * ctc, gloss_ctc_loss=ctc)
+    return result, err.detach()
+
+
+def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
+               gloss_vocab: Vocabulary | None, train: Sequence[Sample], dev: Sequence[Sample], data_version: str,
+               best_path: str | Path, last_path: str | Path | None = None,
+               on_epoch: Callable[[dict[str, float], int], None] | None = None, progress: bool = True,
+               stop_after_epochs: int | None = None) -> TrainRun:
+    """Train one model on ``train``, selecting on ``dev`` (the first ``eval_max_clips``; without dev clips the
+    last epoch is kept). ``last_path``: the resumable checkpoint, continued when it exists."""
+    from tqdm.auto import tqdm
+
+    if not train:
+        raise ValueError("no training clip for the skeletal production model")
+    device = choose_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = build_model(model_cfg, graph, text_vocab, gloss_vocab).to(device)
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    schedule = PlateauSchedule(optim, "min", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+    dev = list(dev)[: cfg.eval_max_clips] if cfg.eval_max_clips > 0 else list(dev)
+    evaluator = ProductionEvaluator(dev, graph, text_vocab, model_cfg.max_frames) if dev else None
+    noise = {"std": None}  # per-coordinate std of the previous epoch's prediction error (S,)
+
+    def evaluate() -> dict[str, float]:
+        scores = evaluator(model)
+        schedule.observe(scores[SELECTION_METRIC])
+        return scores
+
+    def save(path, epoch, step, record, state):
+        if state is not None:
+            state = {**state, "noise_std": noise["std"]}
+        return save_sgsa(path, model, graph, text_vocab, gloss_vocab, epoch, step, data_version, record, settings,
+                         state)
+
+    tail = EpochTail(cfg.epochs, cfg.eval_every,
+                     Selection(f"val_{SELECTION_METRIC}", "min") if dev else Selection("epoch", "max"), optim,
+                     schedule, save=save, best_path=best_path, last_path=last_path,
+                     evaluate=evaluate if evaluator is not None else None, on_epoch=on_epoch)
+
+    def load(path):
+        loaded = load_sgsa(path, device)
+        if loaded.train_state is not None:
+            noise["std"] = loaded.train_state.get("noise_std")
+        return loaded
+
+    resumed_from_epoch = tail.resume_saved(model, load, f"the {model_cfg.variant} model")
+    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"train {model_cfg.variant}", unit="epoch",
+               disable=not progress)
+    for epoch in bar:
+        model.train()
+        sums: dict[str, list[float]] = {}
+        errors = []
+        std = None if noise["std"] is None or cfg.noise_rate == 0 else \
+            torch.as_tensor(noise["std"], device=device) * cfg.noise_rate
+        for samples in epoch_batches(list(train), cfg.batch_size, cfg.seed, epoch):
+            out, err = losses(model, collate(samples, text_vocab).to(device), model_cfg.gloss_weight, std)
+            optimizer_step(out["loss"], model, optim, schedule, cfg.grad_clip)
+            errors.append(err.cpu())
+            for k, v in out.items():
+                sums.setdefault(k, []).append(float(v.item()))
+            tail.step += 1
+        noise["std"] = torch.cat(errors).double().std(0).float() if sum(len(e) for e in errors) > 1 else None
+        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}, bar)
+    return tail.result(model, resumed_from_epoch)

@@ -1,0 +1,175 @@
+"""The skeletal production path end to end on tiny fitted shards: the skeleton judge, PT + SGSA training with
+resume, counter-decoded evaluation through the shared scorers and judge, the Prefect flow and the tables."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from m3t.backtranslation.pipeline import SkeletonInput, run_train_backtranslation
+from m3t.body.skeleton import body_graph
+from m3t.config import load_params
+from m3t.experiment import RunRecord
+from m3t.shards.io import read_split
+from m3t.shards.skeletons import skeleton_clips
+from m3t.sgsa.checkpoint import load_sgsa
+from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
+from m3t.sgsa.data import collate, make_samples, vocabularies
+from m3t.sgsa.pipeline import run_evaluate, run_train
+from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_settings
+from m3t.sgsa.train import losses, train_sgsa
+from test_tokenizer_training import shards_dir  # noqa: F401 - the tiny fitted shards fixture
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tiny_params(shards_dir: Path, root: Path, **sections):  # noqa: F811
+    overrides = {"data": {"shards_root": str(shards_dir.parent), "tokens_root": str(root / "tokens"),
+                          "models_dir": str(root / "models"), "generated_dir": str(root / "gen"),
+                          "metrics_dir": str(root / "metrics")},
+                 "sgsa_train": {"cache_dir": str(root / "cache")},
+                 "backtranslation_train": {"cache_dir": str(root / "cache-bt")}, **sections}
+    return load_params(ROOT / "params.yaml", preset="tiny", overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def trained(shards_dir, body, tmp_path_factory):  # noqa: F811
+    root = tmp_path_factory.mktemp("sgsa")
+    params = tiny_params(shards_dir, root)
+    graph = body_graph()
+    run_train_backtranslation(params.backtranslation, params.backtranslation_train, params.data, progress=False,
+                              skeleton=SkeletonInput(body, graph))
+    report = run_train(params.sgsa, params.sgsa_train, body, params.data, progress=False)
+    return params, report
+
+
+def test_train_writes_both_systems_with_self_describing_checkpoints(trained):
+    params, report = trained
+    out = params.data.sgsa_dir
+    assert sorted(p.name for p in out.glob("*.pt")) == ["pt.pt", "sgsa.pt"]
+    pt, sgsa = load_sgsa(out / "pt.pt"), load_sgsa(out / "sgsa.pt")
+    assert pt.model.cfg.decoder_layers == 0 and pt.model.cfg.variant == "PT"
+    assert sgsa.model.cfg.decoder_layers == params.sgsa.decoder_layers and sgsa.graph == body_graph()
+    assert sgsa.model.dims.width == body_graph().width + 1 == report["skeleton_width"]
+    assert report["pt/parameters"] > 0 and report["sgsa/parameters"] > 0
+    assert json.loads((out / "metrics.json").read_text())["train_clips"] == report["train_clips"] > 0
+
+
+def test_evaluate_scores_every_system_with_the_same_judge(trained, body):
+    params, _ = trained
+    summary = run_evaluate(params.sgsa, params.sgsa_evaluate, body, params.data, params.backtranslation,
+                           progress=False)
+    for system in ("pt", "sgsa"):
+        for split in params.sgsa_evaluate.splits:
+            assert np.isfinite(summary[f"{system}/{split}/dtw_jpe_mean_m"])
+            assert summary[f"{system}/{split}/mean_frames"] >= 1
+            assert f"{system}/{split}/bt/slt_bleu4" in summary
+    # the ground truth goes through the same judge; no generate-smlm output here, so no SMLM row
+    assert "ground_truth/test/bt/slt_bleu4" in summary and not any(k.startswith("smlm/") for k in summary)
+    out = params.data.metrics("sgsa")
+    rows = (out / "per_clip.csv").read_text().splitlines()
+    assert rows[0].startswith("system,split,clip_id")
+    assert len(rows) - 1 == 2 * sum(summary[f"{s}/clips"] for s in params.sgsa_evaluate.splits)
+    assert (out / "backtranslation.csv").read_text().startswith("system,split,clip_id")
+    assert (out / "attention.png").stat().st_size > 0
+    videos = sorted((out / "videos").glob("*.gif"))
+    assert len(videos) == params.sgsa_evaluate.render_clips
+
+
+def test_ground_truth_counter_gives_the_reference_length(trained, body):
+    params, _ = trained
+    cfg = dataclasses.replace(params.sgsa_evaluate, counter="ground_truth", backtranslate=False, render_clips=0,
+                              splits=("test",))
+    summary = run_evaluate(params.sgsa, cfg, body, params.data, progress=False)
+    assert summary["pt/test/length_ratio"] == pytest.approx(1.0)
+    assert summary["sgsa/test/length_ratio"] == pytest.approx(1.0)
+
+
+def samples_for(body, shards_dir, cfg):  # noqa: F811
+    graph = body_graph()
+    clips = skeleton_clips(body, read_split([shards_dir], "train"), graph)
+    text_vocab, gloss_vocab = vocabularies(clips, cfg)
+    return graph, text_vocab, gloss_vocab, make_samples(clips, text_vocab, gloss_vocab, cfg, training=True).samples
+
+
+def test_noise_augmentation_leaves_the_counter_and_scales_with_the_error_std(body, shards_dir):  # noqa: F811
+    cfg = SGSAConfig(encoder_width=16, encoder_ffn=32, encoder_heads=2, decoder_layers=1, decoder_heads=1, dropout=0.0)
+    graph, text_vocab, gloss_vocab, samples = samples_for(body, shards_dir, cfg)
+    from m3t.sgsa.checkpoint import build_model
+
+    model = build_model(cfg, graph, text_vocab, gloss_vocab)
+    batch = collate(samples[:2], text_vocab)
+    seen = {}
+    original = model.forward
+
+    def spy(text_ids, text_mask, frames_in, frame_mask=None):
+        seen["frames_in"] = frames_in
+        return original(text_ids, text_mask, frames_in, frame_mask)
+
+    model.forward = spy
+    clean, _ = losses(model, batch, 0.0, None)
+    assert torch.equal(seen["frames_in"], batch.frames_in)
+    std = torch.full((graph.width + 1,), 0.5)
+    torch.manual_seed(0)
+    losses(model, batch, 0.0, std)
+    noise = seen["frames_in"] - batch.frames_in
+    assert torch.all(noise[..., -1] == 0), "the counter column must never be perturbed"
+    assert noise[..., :-1].std().item() == pytest.approx(0.5, rel=0.1)
+
+
+def test_a_killed_run_resumes_to_the_same_model(body, shards_dir, tmp_path):  # noqa: F811
+    cfg = SGSAConfig(encoder_width=16, encoder_ffn=32, encoder_heads=2, decoder_layers=1, decoder_heads=1,
+                     dropout=0.1)
+    graph, text_vocab, gloss_vocab, samples = samples_for(body, shards_dir, cfg)
+    train_cfg = SGSATrainConfig(epochs=4, batch_size=2, eval_every=2, device="cpu", noise_rate=5.0)
+
+    def run(folder: Path, stop=None):
+        return train_sgsa(cfg, train_cfg, graph, text_vocab, gloss_vocab, samples, samples[:1], "v", folder / "best.pt",
+                          folder / "last.pt", progress=False, stop_after_epochs=stop)
+
+    straight = run(tmp_path / "a")
+    first = run(tmp_path / "b", stop=2)
+    assert len(first.history) == 2
+    resumed = run(tmp_path / "b")
+    assert resumed.resumed_from_epoch == 2
+    assert [r["train_loss"] for r in resumed.history] == pytest.approx([r["train_loss"] for r in straight.history])
+    for a, b in zip(straight.model.state_dict().values(), resumed.model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def record(run_id: str, layers: int, adjacency: int, seed: int, bleu4: float, jpe: float) -> RunRecord:
+    metrics = {}
+    for system, shift in (("pt", 0.0), ("sgsa", 1.0), ("ground_truth", 5.0), ("smlm", 2.0)):
+        for split in ("dev", "test"):
+            for lang in ("ASL-SYN", "DGS-SYN"):
+                for k, base in (("bleu1", 40.0), ("bleu2", 30.0), ("bleu3", 20.0), ("bleu4", bleu4), ("rouge_l", 35.0)):
+                    metrics[f"{system}/{split}/bt/slt/{lang}/{k}"] = base + shift + (1.0 if lang == "DGS-SYN" else 0.0)
+            metrics[f"{system}/{split}/dtw_jpe_mean_m"] = jpe
+    return RunRecord(run_id, "evaluate-sgsa", 0, "FINISHED",
+                     {"sgsa.decoder_layers": str(layers), "sgsa.temporal_adjacency": str(adjacency)}, metrics, None,
+                     {"seed": str(seed)})
+
+
+def test_tables_pool_seeds_and_follow_the_paper_layouts():
+    records = [record("a", 2, 0, 0, 10.0, 1.0), record("b", 2, 0, 1, 12.0, 3.0), record("c", 3, 0, 0, 8.0, 2.0),
+               record("d", 2, 1, 0, 9.0, 2.0)]
+    tab1 = layers_table(records).splitlines()
+    header = next(line for line in tab1 if line.startswith("| L |"))
+    assert header.split(" | ")[1:6] == ["dev BLEU-4", "dev BLEU-3", "dev BLEU-2", "dev BLEU-1", "dev ROUGE"]
+    row = next(line for line in tab1 if line.startswith("| 2 |")).split(" | ")
+    # SGSA (shift 1) BLEU-4: languages 11 / 12 -> 11.5 (seed 0), 13.5 (seed 1) -> 12.5; JPE (1 + 3) / 2 m -> 2000 mm
+    assert row[1] == "12.50" and row[6] == "2000.00" and row[-1].strip(" |") == "2"
+    assert any(line.startswith("| 0 (PT") for line in tab1) and any(line.startswith("| 3 |") for line in tab1)
+    tab2 = adjacency_table(records)
+    assert "| inf |" in tab2 and "| 1 |" in tab2 and "L = 2" in tab2
+    tab3 = cross_table(records)
+    for name in ("Progressive Transformers", "Skeletal Graph Self-Attention", "M3T SMLM", "Ground-truth"):
+        assert name in tab3
+    assert "definition 'slt'" in tab3
+    assert sweep_settings("1", [0, 1])[0] == {"sgsa.decoder_layers": 1, "sgsa.temporal_adjacency": 0,
+                                              "sgsa_train.seed": 0}
+    assert len(sweep_settings("2", [0])) == 5 and len(sweep_settings("1", [0, 1, 2])) == 15
