@@ -94,7 +94,7 @@ class SGSATrainConfig:
     cache_dir: str = ".cache/sgsa"  # best + resumable last checkpoints by run key
     systems: tuple[str, ...] = ("pt", "sgsa")  # pt: the sgsa section with decoder_layers 0 (Progressive
     # Transformers); sgsa: the section as configured. Each is trained into <models>/sgsa/<system>.pt
-    epochs: int = 60
+    epochs: int = 30
     batch_size: int = 8
     lr: float = 1e-3
     lr_patience: int = 5  # validations without a lower dev DTW-JPE before the LR is cut
@@ -103,7 +103,7 @@ class SGSATrainConfig:
     noise_rate: float = 5.0  # 0 = no noise augmentation
     grad_clip: float = 5.0  # 0 = no clipping
     eval_every: int = 5
-    eval_max_clips: int = 32  # dev clips generated at each validation (0 = all)
+    eval_max_clips: int = 16  # dev clips generated at each validation (0 = all)
     seed: int = 0
     device: str = "auto"
 
