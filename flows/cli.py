@@ -10,6 +10,7 @@
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
     m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
     m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
+    m3t sgsa-study [--seeds 0 1 2]        the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
 """
@@ -160,6 +161,18 @@ def _cmd_sgsa_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sgsa_study(args: argparse.Namespace) -> int:
+    from m3t.body.factory import load_body_model
+    from m3t.config import load_params
+    from m3t.sgsa.study import run_study
+
+    params = load_params(args.params)
+    summary = run_study(params.sgsa, params.sgsa_train, load_body_model(params.body), params.data, args.seeds,
+                        args.out, args.split, params.backtranslation)
+    print((Path(args.out) / "claims.md").read_text())
+    return 0 if summary["comparisons"] else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -196,6 +209,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--layers", type=int, default=None, help="L of the Tab. 2 sweep (default: params' sgsa layers)")
     p.add_argument("--dry-run", action="store_true")
     p.set_defaults(func=_cmd_sgsa_sweep)
+    p = sub.add_parser("sgsa-study", help="the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, with intervals")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--split", default="test")
+    p.add_argument("--out", default="metrics/sgsa-claims")
+    p.set_defaults(func=_cmd_sgsa_study)
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
     p.set_defaults(func=_cmd_sgsa_table)

@@ -173,10 +173,12 @@ def test_training_stages_depend_on_every_training_corpus():
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     missing = []
     for name, root in (("train-tokenizers", "shards_root"), ("tokenize", "shards_root"), ("train-smlm", "tokens_root"),
-                       ("train-backtranslation", "shards_root")):
+                       ("train-backtranslation", "shards_root"), ("train-backtranslation-skeleton", "shards_root"),
+                       ("train-sgsa", "shards_root"), ("evaluate-sgsa", "shards_root")):
         deps = [str(d) for d in stages[name]["deps"]]
         for corpus in data["train_corpora"]:
-            shard = f"{data[root]}/{corpus}/train.parquet"
+            split = "test" if name.startswith("evaluate") else "train"
+            shard = f"{data[root]}/{corpus}/{split}.parquet"
             if shard not in deps:
                 missing.append(f"{name}: {shard}")
     for name in ("train-slr", "evaluate-slr"):  # the probe reads the isolated clips of slr.corpus

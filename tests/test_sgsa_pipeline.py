@@ -173,3 +173,51 @@ def test_tables_pool_seeds_and_follow_the_paper_layouts():
     assert sweep_settings("1", [0, 1])[0] == {"sgsa.decoder_layers": 1, "sgsa.temporal_adjacency": 0,
                                               "sgsa_train.seed": 0}
     assert len(sweep_settings("2", [0])) == 5 and len(sweep_settings("1", [0, 1, 2])) == 15
+
+
+def test_claims_study_pairs_clips_over_seeds(trained, body, tmp_path):
+    from m3t.sgsa.study import bootstrap_interval, run_study
+
+    params, _ = trained
+    summary = run_study(params.sgsa, params.sgsa_train, body, params.data, [0, 1], tmp_path, progress=False)
+    claims = {r["claim"] for r in summary["comparisons"]}
+    assert claims == {"SGSA beats PT (Tab. 1, N = inf)", "N = 1 beats N = inf (Tab. 2)"}
+    for r in summary["comparisons"]:
+        low, high = r["interval95"]
+        assert low <= r["difference"] <= high
+        assert r["difference"] == pytest.approx(r["mean_b"] - r["mean_a"])
+    assert all(len(v["bleu4"]) == 2 for v in summary["per_seed"].values())
+    assert "| claim | metric |" in (tmp_path / "claims.md").read_text()
+    rng = np.random.default_rng(0)
+    assert bootstrap_interval(np.full(5, 2.0), rng) == (2.0, 2.0)
+    low, high = bootstrap_interval(np.array([-1.0, 1.0] * 10), rng)
+    assert low < 0 < high
+
+
+def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
+    import yaml
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.cli import main as cli
+    from flows.sgsa import sgsa_flow
+    from m3t.experiment import fetch_runs, to_dict
+
+    params, _ = trained
+    params = dataclasses.replace(params, experiment=dataclasses.replace(
+        params.experiment, enabled=True, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}",
+        artifact_dir=str(tmp_path / "mlruns")), sgsa_evaluate=dataclasses.replace(params.sgsa_evaluate, render_clips=0))
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text(yaml.safe_dump(to_dict(params)))
+    with prefect_test_harness():
+        result = sgsa_flow(params_path=str(params_file))
+    assert set(result) == {"judge", "train", "evaluation"}
+    runs = fetch_runs(params.experiment, stage="evaluate-sgsa")
+    assert len(runs) == 1 and runs[0].tags["seed"] == str(params.sgsa_train.seed)
+    assert runs[0].params["sgsa.decoder_layers"] == str(params.sgsa.decoder_layers)
+    assert {r.stage for r in fetch_runs(params.experiment)} >= {"train-backtranslation-skeleton", "train-sgsa",
+                                                                  "evaluate-sgsa"}
+    assert cli(["--params", str(params_file), "sgsa-table", "--table", "3"]) == 0
+    table = capsys.readouterr().out
+    pt_row = next(line for line in table.splitlines() if line.startswith("| Progressive Transformers"))
+    cells = [c.strip() for c in pt_row.strip().strip("|").split("|")]
+    assert len(cells) == 14 and "-" not in cells[1:7]  # dev BLEU-4 .. ROUGE and DTW-JPE filled from the run

@@ -101,6 +101,8 @@ class SGSATrainConfig:
     lr_factor: float = 0.7
     min_lr: float = 2e-4
     noise_rate: float = 5.0  # 0 = no noise augmentation
+    counter_weight: float = 0.0  # extra weight on the counter's squared error; 0 = the papers' plain MSE, where the
+    # counter is 1 of S coordinates
     grad_clip: float = 5.0  # 0 = no clipping
     eval_every: int = 5
     eval_max_clips: int = 16  # dev clips generated at each validation (0 = all)

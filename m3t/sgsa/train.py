@@ -1,7 +1,7 @@
 """Training one skeletal production model, SGSA or its PT baseline (SGSA Sec. 4.2 / 5, Progressive Transformers).
 
-Loss: MSE between predicted and ground-truth frames (skeleton coordinates and counter, real frames only) plus
-``gloss_weight`` x the CTC loss of the encoder's gloss head over the clips that have glosses (gloss supervision).
+Loss: MSE between predicted and ground-truth frames (skeleton coordinates and counter, real frames only), plus
+``counter_weight`` x the counter's own squared error (0 = the papers' plain MSE), plus ``gloss_weight`` x the CTC loss of the encoder's gloss head over the clips that have glosses (gloss supervision).
 Teacher forcing with **Gaussian noise augmentation** (PT): the previous frames fed to the decoder get noise
 ``N(0, 1) x noise_rate x std_d``, where ``std_d`` is the per-coordinate standard deviation of the previous
 epoch's prediction error (none in the first epoch; the counter column is never perturbed). Adam at ``lr`` with
@@ -44,8 +44,8 @@ def run_key(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, t
                       None if gloss_vocab is None else gloss_vocab.to_dict(), data_version)
 
 
-def losses(model: SGSAProduction, batch: Batch, gloss_weight: float,
-           noise_std: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+def losses(model: SGSAProduction, batch: Batch, gloss_weight: float, noise_std: torch.Tensor | None = None,
+           counter_weight: float = 0.0) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """``({"loss", "skeleton_loss"[, "gloss_ctc_loss"]}, errors)``: errors (N, S) = prediction - target of the
     real frames (for the next epoch's noise)."""
     frames_in = batch.frames_in
@@ -57,12 +57,15 @@ def losses(model: SGSAProduction, batch: Batch, gloss_weight: float,
     err = (out.frames - batch.target)[batch.frame_mask]  # (N, S)
     skeleton = err.pow(2).mean()
     result = {"loss": skeleton, "skeleton_loss": skeleton}
+    if counter_weight > 0:  # the counter is 1 of S coordinates of the MSE: too faint a signal on a small corpus
+        counter = err[:, -1].pow(2).mean()
+        result.update(loss=skeleton + counter_weight * counter, counter_loss=counter)
     rows = batch.gloss_lengths > 0
     if out.gloss_logits is not None and gloss_weight > 0 and bool(rows.any()):
         log_probs = out.gloss_logits[rows].float().log_softmax(-1).transpose(0, 1)  # (K, B', G)
         ctc = F.ctc_loss(log_probs, batch.glosses[rows], batch.text_mask[rows].sum(1), batch.gloss_lengths[rows],
                          blank=0, reduction="mean", zero_infinity=True)
-        result.update(loss=skeleton + gloss_weight * ctc, gloss_ctc_loss=ctc)
+        result.update(loss=result["loss"] + gloss_weight * ctc, gloss_ctc_loss=ctc)
     return result, err.detach()
 
 
@@ -119,7 +122,8 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
         std = None if noise["std"] is None or cfg.noise_rate == 0 else \
             torch.as_tensor(noise["std"], device=device) * cfg.noise_rate
         for samples in epoch_batches(list(train), cfg.batch_size, cfg.seed, epoch):
-            out, err = losses(model, collate(samples, text_vocab).to(device), model_cfg.gloss_weight, std)
+            out, err = losses(model, collate(samples, text_vocab).to(device), model_cfg.gloss_weight, std,
+                              cfg.counter_weight)
             optimizer_step(out["loss"], model, optim, schedule, cfg.grad_clip)
             errors.append(err.cpu())
             for k, v in out.items():
