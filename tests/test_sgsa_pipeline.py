@@ -180,14 +180,16 @@ def test_claims_study_pairs_clips_over_seeds(trained, body, tmp_path):
 
     params, _ = trained
     summary = run_study(params.sgsa, params.sgsa_train, body, params.data, [0, 1], tmp_path, progress=False)
-    claims = {r["claim"] for r in summary["comparisons"]}
-    assert claims == {"SGSA beats PT (Tab. 1, N = inf)", "N = 1 beats N = inf (Tab. 2)"}
+    claims = {(r["claim"], r["counter"]) for r in summary["comparisons"]}
+    assert claims == {(c, counter) for c in ("SGSA beats PT (Tab. 1, N = inf)", "N = 1 beats N = inf (Tab. 2)")
+                      for counter in ("predicted", "ground_truth")}
     for r in summary["comparisons"]:
         low, high = r["interval95"]
         assert low <= r["difference"] <= high
         assert r["difference"] == pytest.approx(r["mean_b"] - r["mean_a"])
-    assert all(len(v["bleu4"]) == 2 for v in summary["per_seed"].values())
-    assert "| claim | metric |" in (tmp_path / "claims.md").read_text()
+    assert all(len(v["bleu4"]) == 2 for by_name in summary["per_seed"].values() for v in by_name.values())
+    assert all(v["length_ratio"] == [1.0, 1.0] for v in summary["per_seed"]["ground_truth"].values())
+    assert "| claim | counter | metric |" in (tmp_path / "claims.md").read_text()
     rng = np.random.default_rng(0)
     assert bootstrap_interval(np.full(5, 2.0), rng) == (2.0, 2.0)
     low, high = bootstrap_interval(np.array([-1.0, 1.0] * 10), rng)

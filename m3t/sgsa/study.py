@@ -8,7 +8,8 @@ per seed of ``seeds`` (``sgsa_train.seed``; the rest of ``sgsa`` / ``sgsa_train`
 ``sgsa_train.cache_dir`` under their run key are reused), then every clip of ``split`` is generated with the
 predicted counter and scored: DTW-JPE (mean of body and hands, SOKE raw cost, and its path-normalised form, which
 does not grow with the generated length) and the skeleton judge's sentence-level ROUGE-L (SL-T definition) on the
-sentence clips, plus corpus BLEU-4 per seed. A comparison is the per-clip paired difference (B - A), averaged over
+sentence clips, plus corpus BLEU-4 per seed. Every model is scored twice: with its own (predicted) counter and with
+the ground-truth counter (the true length; parity with published PT numbers only). A comparison is the per-clip paired difference (B - A), averaged over
 seeds, with a 95 % percentile bootstrap interval over clips; "B better" needs the whole interval on B's side.
 
 Axis legend: C clips, R seeds.
@@ -55,7 +56,7 @@ def bootstrap_interval(diff: np.ndarray, rng: np.random.Generator, draws: int = 
 
 def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel, data: DataConfig,
               seeds: list[int], out_dir: str | Path, split: str = "test", judge: BackTranslationConfig | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, counters: tuple[str, ...] = ("predicted", "ground_truth")) -> dict:
     """Train and score every variant for every seed; write ``claims.json`` and ``claims.md`` into ``out_dir``."""
     judge = judge or BackTranslationConfig()
     graph = graph_for(model_cfg.skeleton, model_cfg.face_points)
@@ -68,11 +69,12 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
     test = make_samples(test_clips, text_vocab, gloss_vocab, model_cfg, training=False).samples
     sentences = [s for s in test if s.sentence]
     version = data_version([folder / f"{part}.parquet" for folder in data.shards_dirs for part in ("train", "dev")])
-    per_clip: dict[str, dict[str, np.ndarray]] = {}  # variant -> metric -> (R, C)
-    corpus: dict[str, dict[str, list[float]]] = {}  # variant -> metric -> per seed
+    per_clip: dict[str, dict[str, dict[str, np.ndarray]]] = {c: {} for c in counters}  # counter -> variant -> (R, C)
+    corpus: dict[str, dict[str, dict[str, list[float]]]] = {c: {} for c in counters}  # ... -> metric -> per seed
     for name, cfg in variants(model_cfg).items():
-        rows: dict[str, list[np.ndarray]] = {k: [] for k in LOWER_IS_BETTER}
-        corpus[name] = {"bleu4": [], "rouge_l": [], "dtw_jpe_mean_m": [], "length_ratio": []}
+        rows = {c: {k: [] for k in LOWER_IS_BETTER} for c in counters}
+        for c in counters:
+            corpus[c][name] = {"bleu4": [], "rouge_l": [], "dtw_jpe_mean_m": [], "length_ratio": []}
         for seed in seeds:
             tcfg = dataclasses.replace(train_cfg, seed=seed)
             key = run_key(cfg, tcfg, graph, text_vocab, gloss_vocab, version)
@@ -80,41 +82,45 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
             result = train_sgsa(cfg, tcfg, graph, text_vocab, gloss_vocab, train, dev, version, best,
                                 Path(tcfg.cache_dir) / f"{key}.last.pt", progress=progress)
             model = load_sgsa(result.best_path).model
-            produced = generate(model, test, text_vocab, cfg.max_frames)
-            report = score_production(test, produced, graph, cfg.max_frames)
-            by_id = {r["clip_id"]: r for r in report.per_clip}
-            rows["dtw_jpe_mean_m"].append(np.array([0.5 * (by_id[s.clip_id]["dtw_jpe_body_m"]
-                                                           + by_id[s.clip_id]["dtw_jpe_hand_m"]) for s in test]))
-            rows["dtw_jpe_mean_pathnorm_m"].append(np.array([0.5 * (by_id[s.clip_id]["dtw_jpe_body_pathnorm_m"]
-                                                                    + by_id[s.clip_id]["dtw_jpe_hand_pathnorm_m"])
-                                                             for s in test]))
-            judged = backtranslate(data.skeleton_judge_dir,
-                                   {s.clip_id: (s.language, {SKELETON_STREAM: produced[s.clip_id][:, :-1]})
-                                    for s in sentences},
-                                   {s.clip_id: s.clip.fitted.clip.text for s in sentences}, judge.beam_size,
-                                   judge.length_penalty)
-            rows["rouge_l"].append(np.array([r["rouge_l"] for r in judged.per_clip]))
-            corpus[name]["bleu4"].append(judged.summary["slt_bleu4"])
-            corpus[name]["rouge_l"].append(judged.summary["slt_rouge_l"])
-            corpus[name]["dtw_jpe_mean_m"].append(report.summary["dtw_jpe_mean_m"])
-            corpus[name]["length_ratio"].append(report.summary["length_ratio"])
-        per_clip[name] = {k: np.stack(v) for k, v in rows.items()}
-    names = list(per_clip)
+            for counter in counters:
+                produced = generate(model, test, text_vocab, cfg.max_frames, counter)
+                report = score_production(test, produced, graph, cfg.max_frames)
+                by_id = {r["clip_id"]: r for r in report.per_clip}
+                found = rows[counter]
+                for metric, suffix in (("dtw_jpe_mean_m", "_m"), ("dtw_jpe_mean_pathnorm_m", "_pathnorm_m")):
+                    found[metric].append(np.array([0.5 * (by_id[s.clip_id][f"dtw_jpe_body{suffix}"]
+                                                          + by_id[s.clip_id][f"dtw_jpe_hand{suffix}"]) for s in test]))
+                judged = backtranslate(data.skeleton_judge_dir,
+                                       {s.clip_id: (s.language, {SKELETON_STREAM: produced[s.clip_id][:, :-1]})
+                                        for s in sentences},
+                                       {s.clip_id: s.clip.fitted.clip.text for s in sentences}, judge.beam_size,
+                                       judge.length_penalty)
+                found["rouge_l"].append(np.array([r["rouge_l"] for r in judged.per_clip]))
+                seen = corpus[counter][name]
+                seen["bleu4"].append(judged.summary["slt_bleu4"])
+                seen["rouge_l"].append(judged.summary["slt_rouge_l"])
+                seen["dtw_jpe_mean_m"].append(report.summary["dtw_jpe_mean_m"])
+                seen["length_ratio"].append(report.summary["length_ratio"])
+        for c in counters:
+            per_clip[c][name] = {k: np.stack(v) for k, v in rows[c].items()}
+    names = list(variants(model_cfg))
     comparisons = [(names[0], names[1], "SGSA beats PT (Tab. 1, N = inf)")]
     if len(names) > 2:
         comparisons.append((names[1], names[2], f"N = {model_cfg.temporal_adjacency} beats N = inf (Tab. 2)"))
     rng = np.random.default_rng(0)
     results = []
-    for a, b, claim in comparisons:
-        for metric, lower in LOWER_IS_BETTER.items():
-            diff = (per_clip[b][metric] - per_clip[a][metric]).mean(0)  # (C,) seed-averaged paired difference
-            low, high = bootstrap_interval(diff, rng)
-            better_b = high < 0 if lower else low > 0
-            better_a = low > 0 if lower else high < 0
-            verdict = f"{b} better" if better_b else f"{a} better" if better_a else "no difference established"
-            results.append({"claim": claim, "a": a, "b": b, "metric": metric, "clips": int(diff.size),
-                            "mean_a": float(per_clip[a][metric].mean()), "mean_b": float(per_clip[b][metric].mean()),
-                            "difference": float(diff.mean()), "interval95": [low, high], "verdict": verdict})
+    for counter in counters:
+        for a, b, claim in comparisons:
+            for metric, lower in LOWER_IS_BETTER.items():
+                pa, pb = per_clip[counter][a][metric], per_clip[counter][b][metric]
+                diff = (pb - pa).mean(0)  # (C,) seed-averaged paired difference
+                low, high = bootstrap_interval(diff, rng)
+                better_b = high < 0 if lower else low > 0
+                better_a = low > 0 if lower else high < 0
+                verdict = f"{b} better" if better_b else f"{a} better" if better_a else "no difference established"
+                results.append({"claim": claim, "counter": counter, "a": a, "b": b, "metric": metric,
+                                "clips": int(diff.size), "mean_a": float(pa.mean()), "mean_b": float(pb.mean()),
+                                "difference": float(diff.mean()), "interval95": [low, high], "verdict": verdict})
     summary = {"split": split, "seeds": list(seeds), "variants": {n: dataclasses.asdict(c)
                                                                   for n, c in variants(model_cfg).items()},
                "per_seed": corpus, "comparisons": results}
@@ -128,17 +134,20 @@ def claims_markdown(summary: dict) -> str:
     lines = [f"SGSA claims on the {summary['split']} split, seeds {summary['seeds']} (paired per clip, seed-averaged; "
              "95 % bootstrap interval over clips). DTW-JPE: SOKE raw DTW cost (and path-normalised), mean of body and "
              "hands, mm; ROUGE-L: skeleton judge, SL-T definition, sentence level.", "",
-             "| claim | metric | A | B | mean A | mean B | B - A | 95 % interval | verdict |", "|---|---|---|---|---|---|---|---|---|"]
+             "| claim | counter | metric | A | B | mean A | mean B | B - A | 95 % interval | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in summary["comparisons"]:
         scale = 1000.0 if r["metric"].endswith("_m") else 1.0
         low, high = r["interval95"]
-        lines.append(f"| {r['claim']} | {r['metric'].replace('_m', '_mm') if scale > 1 else r['metric']} | {r['a']} | "
+        metric = r["metric"].removesuffix("_m") + "_mm" if scale > 1 else r["metric"]
+        lines.append(f"| {r['claim']} | {r['counter']} | {metric} | {r['a']} | "
                      f"{r['b']} | {scale * r['mean_a']:.2f} | {scale * r['mean_b']:.2f} | "
                      f"{scale * r['difference']:.2f} | [{scale * low:.2f}, {scale * high:.2f}] | {r['verdict']} |")
     lines += ["", "Per seed (corpus BLEU-4 / ROUGE-L of the judge, DTW-JPE mm, generated / reference length):", ""]
-    for name, values in summary["per_seed"].items():
-        cells = ", ".join(f"seed {s}: B4 {b:.2f} R {r:.2f} JPE {1000 * j:.0f} len x{ratio:.2f}"
-                          for s, b, r, j, ratio in zip(summary["seeds"], values["bleu4"], values["rouge_l"],
-                                                       values["dtw_jpe_mean_m"], values["length_ratio"]))
-        lines.append(f"- {name}: {cells}")
+    for counter, by_name in summary["per_seed"].items():
+        for name, values in by_name.items():
+            cells = ", ".join(f"seed {s}: B4 {b:.2f} R {r:.2f} JPE {1000 * j:.0f} len x{ratio:.2f}"
+                              for s, b, r, j, ratio in zip(summary["seeds"], values["bleu4"], values["rouge_l"],
+                                                           values["dtw_jpe_mean_m"], values["length_ratio"]))
+            lines.append(f"- {name}, {counter} counter: {cells}")
     return "\n".join(lines) + "\n"
