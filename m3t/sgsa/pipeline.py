@@ -15,15 +15,15 @@
 """
 from __future__ import annotations
 
+import csv
 import io
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from m3t.atomic import copy_file, write_json, write_jsonl, write_text
 from m3t.backtranslation.config import BackTranslationConfig
-from m3t.backtranslation.pipeline import backtranslate, per_clip_csv
+from m3t.backtranslation.pipeline import PER_CLIP_COLUMNS, backtranslate
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.body.skeleton import SkeletonGraph, graph_for, regions
@@ -105,14 +105,6 @@ def train_and_log(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body_cfg: BodyCon
 
 
 # --------------------------------------------------------------------------------------- evaluate
-@dataclass
-class EvaluationSet:
-    split: str
-    samples: list[Sample]  # every clip with text and frames (text cut to the limit, counted)
-    skipped: list[dict]
-    cut_text: int
-
-
 def load_systems(data: DataConfig, device: str = "cpu") -> dict[str, LoadedSGSA]:
     files = sorted(data.sgsa_dir.glob("*.pt")) if data.sgsa_dir.is_dir() else []
     if not files:
@@ -156,8 +148,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
     judge = judge or BackTranslationConfig()
     device = str(choose_device(cfg.device))
     systems = load_systems(data, device)
-    graphs = {s.graph.to_dict().__repr__() for s in systems.values()}
-    if len(graphs) != 1:
+    if len({s.graph for s in systems.values()}) != 1:
         raise ValueError(f"the checkpoints of {data.sgsa_dir} use different skeleton graphs; retrain them together")
     first = next(iter(systems.values()))
     graph: SkeletonGraph = first.graph
@@ -184,8 +175,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
             report = score_production(samples, frames, graph, loaded.model.cfg.max_frames, progress)
             summary.update({f"{name}/{split}/{k}": v for k, v in report.summary.items()})
             per_clip.extend({"system": name, "split": split, **row} for row in report.per_clip)
-            produced_by[name] = {cid: produced_points(f, graph, s.clip.scale)
-                                 for s in samples for cid, f in [(s.clip_id, frames[s.clip_id])]}
+            produced_by[name] = {s.clip_id: produced_points(frames[s.clip_id], graph, s.clip.scale) for s in samples}
             if cfg.backtranslate and sentences:
                 judged = _judge(data.skeleton_judge_dir,
                                 {s.clip_id: (s.language, frames[s.clip_id][:, :-1]) for s in sentences}, texts, judge)
@@ -253,12 +243,14 @@ def _csv(rows: list[dict]) -> str:
 
 
 def _bt_csv(rows: list[dict]) -> str:
-    body = per_clip_csv([{k: v for k, v in r.items() if k not in ("system", "split")} for r in rows])
-    lines = body.splitlines()
-    if not lines:
+    """The judge's per-clip rows of every system and split (back-translation's columns after those two)."""
+    if not rows:
         return ""
-    return "\n".join(["system,split," + lines[0]] + [f"{r['system']},{r['split']},{line}"
-                                                      for r, line in zip(rows, lines[1:])]) + "\n"
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=("system", "split", *PER_CLIP_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
 
 
 def evaluate_and_log(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body_cfg: BodyConfig, data: DataConfig,
