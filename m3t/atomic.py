@@ -11,17 +11,37 @@ For writers that want a path or a file object of their own (Parquet, ``np.savez`
 
     with atomic_path(out) as tmp:
         torch.save(state, tmp)
+
+Outputs get the permissions a plain ``open(path, "w")`` gives a new file: 0666 less the process umask
+(0644 under the usual umask 022), also when they replace an older file.
 """
 from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+
+def _new_temp(folder: Path, prefix: str, suffix: str) -> Path:
+    """Create an empty, uniquely named file in ``folder`` with the mode ``open()`` gives a new file.
+
+    Not ``tempfile.mkstemp``: its files are 0600, and the rename would hand that mode to every output
+    (unreadable to the group, to a web server or a container running as another user).
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        tmp = folder / f"{prefix}{secrets.token_hex(6)}{suffix}"
+        try:
+            os.close(os.open(tmp, flags, 0o666))  # the kernel applies the umask, as for open(path, "w")
+        except FileExistsError:
+            continue
+        return tmp
+    raise FileExistsError(f"{folder}: 100 temporary names {prefix}*{suffix} already exist; remove stale ones")
 
 
 @contextmanager
@@ -29,14 +49,14 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     """Yield a temporary path in ``path``'s folder; on success it replaces ``path``, on any error it is removed.
 
     ``suffix`` is the temporary name's ending (``".npz"`` for writers that append their own extension).
-    The parent folder is created when missing.
+    The parent folder is created when missing. The file exists (empty) when yielded, with mode 0666 less the
+    umask, which writers that open the path keep and the rename carries over to ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
+    tmp = _new_temp(path.parent, f".{path.name}.", suffix)
     try:
-        yield Path(tmp)
+        yield tmp
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -15,10 +15,10 @@ import pytest
 
 import corpus_fixtures as fx
 from m3t.corpora.base import (
-    CORPORA, MEDIA_KINDS, SPLITS, CorpusError, Listing, Quarantined, hash_split, open_corpus,
+    CORPORA, MEDIA_KINDS, SPLITS, CorpusError, Listing, Quarantined, hash_split, media_path_problem, open_corpus,
 )
 from m3t.corpora.fingerspelling import FingerspellingCorpus, lexicon_root, spell
-from m3t.corpora.fitted_pickles import SmplxSequenceError, load_smplx_sequence
+from m3t.corpora.fitted_pickles import SmplxSequenceError, frame_number, load_smplx_sequence
 from m3t.corpora.mead import read_flame_params
 from m3t.corpora.posefile import read_pose, read_pose_info
 
@@ -51,11 +51,28 @@ def test_phoenix14t(tmp_path, under_root):
     fixture = fx.build_phoenix14t(tmp_path, under_root)
     listing = open_corpus("phoenix14t", tmp_path).listing()
     check_listing(listing, fixture)
-    clip = next(c for c in listing.clips if c.id == "train_clip1")
-    assert (clip.text, clip.gloss, clip.signer, clip.language, clip.fps) == (
-        "morgen regnet es", "REGEN MORGEN", "Signer01", "DGS", 25.0)
-    assert clip.media == "features/fullFrame-210x260px/train/train_clip1/1" and clip.get("media_kind") == "frames"
-    assert clip.label is None
+    real = fixture.extra["real_name"]
+    clip = next(c for c in listing.clips if c.id == real)
+    assert (clip.split, clip.signer, clip.language, clip.fps, clip.gloss.split()[:2]) == (
+        "train", "Signer01", "DGS", 25.0, ["REGEN", "SCHNEE"])
+    assert clip.text.startswith("regen und schnee lassen an den alpen")
+    # the release tree: <split>/<name>/images0001.png, no "1/" folder although the video column says <name>/1/*.png
+    assert clip.media == f"features/fullFrame-210x260px/train/{real}" and clip.get("media_kind") == "frames"
+    assert clip.label is None and clip.get("frame_glob") == "*.png"
+    assert {c.media.split("/")[2] for c in listing.clips} == {"train", "dev", "test"}  # the split folder, always
+    same = next(q for q in listing.quarantined if q.clip_id == "train_same_video")  # listed under the first name
+    file = ("" if under_root else "annotations/manual/") + "PHOENIX-2014-T.train.corpus.csv"
+    assert f"is already the media of clip {real} ({file} row 2)" in same.reason
+
+
+def test_phoenix2014_style_1_folder(tmp_path):
+    """PHOENIX-2014's multisigner tree keeps the images in <split>/<name>/1/: the same rows list there too."""
+    fixture = fx.build_phoenix14t(tmp_path, legacy_1_folder=True)
+    listing = open_corpus("phoenix14t", tmp_path).listing()
+    check_listing(listing, fixture)
+    assert all(c.media.endswith("/1") for c in listing.clips)
+    assert next(c for c in listing.clips if c.id == fixture.extra["real_name"]).media == (
+        f"features/fullFrame-210x260px/train/{fixture.extra['real_name']}/1")
 
 
 def test_phoenix14t_wrong_header_and_missing_file(tmp_path):
@@ -71,20 +88,34 @@ def test_phoenix14t_wrong_header_and_missing_file(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------- How2Sign
-def test_how2sign(tmp_path):
-    fixture = fx.build_how2sign(tmp_path)
+@pytest.mark.parametrize("layout", ["script", "archives"])
+def test_how2sign(tmp_path, layout):
+    fixture = fx.build_how2sign(tmp_path, layout)
     listing = open_corpus("how2sign", tmp_path).listing()
     check_listing(listing, fixture)
-    clip = next(c for c in listing.clips if c.id == "valvid1_1-5-rgb_front")
+    real = next(c for c in listing.clips if c.id == "10om04b2LIw_26-8-rgb_front")
+    assert (real.split, real.text, real.get("video_name")) == ("train", "And that ought to do it.",
+                                                              "10om04b2LIw-8-rgb_front")
+    assert (float(real.get("start_s")), float(real.get("end_s"))) == (137.95, 141.01)
+    clip = next(c for c in listing.clips if c.id == "-valVid1xY_1-5-rgb_front")
     assert clip.split == "dev" and clip.signer == "unknown" and clip.language == "ASL" and clip.fps == 24.0
     assert clip.text == "And now we stir sentence 1." and clip.gloss == ""
-    assert (float(clip.get("start_s")), float(clip.get("end_s"))) == (2.5, 5.25)
-    assert clip.media == "sentence_level/val/rgb_front/raw_videos/valvid1_1-5-rgb_front.mp4"
+    assert clip.media == fixture.extra["clip_dir"].format(split="val") + "/-valVid1xY_1-5-rgb_front.mp4"
     assert {c.fps for c in open_corpus("how2sign", tmp_path, fps=30.0).clips()} == {30.0}
 
 
+def test_how2sign_without_clip_folder_names_the_places(tmp_path):
+    fixture = fx.build_how2sign(tmp_path, "archives")
+    for f in (tmp_path / "test_rgb_front_clips/raw_videos").iterdir():
+        f.unlink()
+    (tmp_path / "test_rgb_front_clips/raw_videos").rmdir()
+    with pytest.raises(CorpusError, match=r"no How2Sign clip folder for split test \(looked in .*"
+                                          r"sentence_level/test/rgb_front/raw_videos, .*test_rgb_front_clips"):
+        open_corpus("how2sign", fixture.root).listing()
+
+
 def test_how2sign_comma_header_is_refused(tmp_path):
-    fx.build_how2sign(tmp_path)
+    fx.build_how2sign(tmp_path, "archives")
     path = tmp_path / "how2sign_realigned_test.csv"
     path.write_text(path.read_text().replace("\t", ","), encoding="utf-8")
     with pytest.raises(CorpusError, match="how2sign_realigned_test.csv line 1"):
@@ -92,14 +123,25 @@ def test_how2sign_comma_header_is_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------- CSL-Daily
-def test_csl_daily(tmp_path):
-    fixture = fx.build_csl_daily(tmp_path)
+@pytest.mark.parametrize("frames_layout", ["sentence", "archive"])
+def test_csl_daily(tmp_path, frames_layout):
+    fixture = fx.build_csl_daily(tmp_path, frames_layout)
     listing = open_corpus("csl_daily", tmp_path).listing()
     check_listing(listing, fixture)
     clip = next(c for c in listing.clips if c.id == "S000004_P0000_T00")
     assert (clip.split, clip.text, clip.gloss, clip.signer, clip.fps, clip.language) == (
         "dev", "你好吗", "你 好", "1", 30.0, "CSL")
     assert clip.get("chars") == "你好吗" and clip.get("media_kind") == "frames"
+    assert clip.media == f"{fx.CSL_FRAME_DIRS[frames_layout]}/S000004_P0000_T00"
+
+
+def test_csl_daily_without_frames_names_the_places(tmp_path):
+    fx.build_csl_daily(tmp_path)
+    (tmp_path / "sentence").rename(tmp_path / "elsewhere")
+    with pytest.raises(CorpusError, match=r"no CSL-Daily frame folder \(looked in .*sentence/frames_512x512, "
+                                          r".*sentence_frames-512x512/frames_512x512\)"):
+        open_corpus("csl_daily", tmp_path).listing()
+    assert len(open_corpus("csl_daily", tmp_path, frames_dir="elsewhere/frames_512x512").clips()) == 6
 
 
 @pytest.mark.parametrize("payload, refused", [(None, "getcwd"), (np.zeros(3), "numpy")])
@@ -122,6 +164,7 @@ def test_nmfs_csl_without_subset_list(tmp_path):
     assert (clip.label, clip.text, clip.gloss, clip.fps) == (2, "对不起", "对不起", 30.0)
     assert clip.media == "video/P02/2_01.mp4"
     assert by_id["video__P05__3_01"].media == "video/P05/3_01.mp4"
+    assert (by_id["2__P06_2_01"].label, by_id["2__P06_2_01"].split) == (2, "test")  # class = its numeric folder
     assert {c.get("subset") for c in listing.clips} == {"unknown"}
     with pytest.raises(CorpusError, match="confusing_list"):
         corpus.subset(0)
@@ -136,7 +179,7 @@ def test_nmfs_csl_subsets_and_dev_split(tmp_path):
     assert subsets == {0: "confusing", 1: "normal", 2: "confusing", 3: "normal"}
     assert corpus.subset(2) == "confusing" and corpus.subset(3) == "normal"
     split = counts(first)
-    assert split["train"] + split["dev"] == 5 and split["test"] == 3 and split["dev"] > 0
+    assert split["train"] + split["dev"] == 5 and split["test"] == 4 and split["dev"] > 0
     assert all(c.get("source_split") == "train" for c in first.clips if c.split == "dev")
     with pytest.raises(ValueError, match="dev_fraction"):
         open_corpus("nmfs_csl", tmp_path, dev_fraction=1.0)
@@ -154,10 +197,26 @@ def test_mead_listing_and_subject_splits(tmp_path):
     assert all(len(s) == 1 for s in by_subject.values())
     clip = next(c for c in listing.clips if c.id == "W009_happy_level_3_001")
     assert (clip.text, clip.language, clip.fps) == ("happy level_3", "none", 25.0)
-    assert clip.get("media_kind") == "flame_params"
+    assert clip.get("media_kind") == "flame_params" and clip.get("view") is None
     named = open_corpus("mead", tmp_path, dev_subjects=["W009"], test_subjects=["M012"]).listing()
     assert {c.signer: c.split for c in named.clips} == {"M003": "train", "M005": "train", "W009": "dev",
                                                         "W011": "train", "M012": "test"}
+
+
+def test_mead_release_layout_with_views(tmp_path):
+    """EMOTE's tree has a view level: listed (front only by default), the view kept in extra and the id."""
+    fixture = fx.build_mead_release(tmp_path)
+    listing = open_corpus("mead", tmp_path).listing()
+    check_listing(listing, fixture)
+    clip = next(c for c in listing.clips if c.id == "M003_front_angry_level_1_001")
+    assert (clip.signer, clip.text, clip.get("view"), clip.get("emotion"), clip.get("level"), clip.get("clip"),
+            clip.media) == ("M003", "angry level_1", "front", "angry", "level_1", "001",
+                            "M003/front/angry/level_1/001/shape_pose_cam.hdf5")
+    both = open_corpus("mead", tmp_path, views=["front", "left_30"]).listing()
+    assert len(both.clips) == 6 and not both.quarantined
+    assert "M003_left_30_angry_level_1_001" in {c.id for c in both.clips}
+    with pytest.raises(ValueError, match=r"corpora\.mead\.views: \['side'\]"):
+        open_corpus("mead", tmp_path, views=["side"])
 
 
 def test_mead_read_flame_params(tmp_path, monkeypatch):
@@ -175,34 +234,76 @@ def test_mead_read_flame_params(tmp_path, monkeypatch):
 
 
 def test_mead_read_hdf5(tmp_path):
-    h5py = pytest.importorskip("h5py")
-    arrays = fx.flame_arrays(6)
-    with h5py.File(tmp_path / "shape_pose_cam.hdf5", "w") as f:
+    """(T, D) and EMOTE's (1, T, D) datasets read to the same (T, D) arrays; other shapes named in the error."""
+    import h5py  # a main dependency: a missing install fails here instead of skipping
+
+    arrays = fx.flame_arrays(6, exp=100, shape=300)
+    fx.write_hdf5(tmp_path / "flat" / "shape_pose_cam.hdf5", arrays)
+    fx.write_hdf5(tmp_path / "batch" / "shape_pose_cam.hdf5", {k: v[None] for k, v in arrays.items()})
+    for folder in ("flat", "batch"):
+        params = read_flame_params(tmp_path / folder / "shape_pose_cam.hdf5")
+        assert params.keys() == arrays.keys()
         for k, v in arrays.items():
-            f.create_dataset(k, data=v)
-    params = read_flame_params(tmp_path / "shape_pose_cam.hdf5")
-    for k, v in arrays.items():
-        np.testing.assert_array_equal(params[k], v)
+            np.testing.assert_array_equal(params[k], v)
+    with h5py.File(tmp_path / "batch" / "shape_pose_cam.hdf5", "a") as f:
+        del f["jaw"]
+        f.create_dataset("jaw", data=np.zeros((2, 6, 3), np.float32))  # two clips in one file
+    with pytest.raises(CorpusError, match=r"dataset 'jaw' has shape \(2, 6, 3\); expected \(T, D\) or EMOTE's "
+                                          r"\(1, T, D\)"):
+        read_flame_params(tmp_path / "batch" / "shape_pose_cam.hdf5")
+    short = {**arrays, "cam": arrays["cam"][:4]}
+    fx.write_hdf5(tmp_path / "short" / "shape_pose_cam.hdf5", short)
+    with pytest.raises(CorpusError, match="dataset 'cam' has 4 frames, 'exp' has 6"):
+        read_flame_params(tmp_path / "short" / "shape_pose_cam.hdf5")
 
 
 # ----------------------------------------------------------------------------------------- fitted pickles
-def test_soke_smplx(tmp_path):
-    fixture = fx.build_soke(tmp_path)
+@pytest.mark.parametrize("layout", ["how2sign", "phoenix", "csl"])
+def test_soke_smplx(tmp_path, layout):
+    fixture = fx.build_soke(tmp_path, layout)
     listing = open_corpus("soke_smplx", tmp_path, annotation="annotation.csv", validate=True).listing()
     check_listing(listing, fixture)
-    clip = next(c for c in listing.clips if c.id == "b1")
+    clip = next(c for c in listing.clips if c.id == "b1_0-8-rgb_front")
     assert (clip.split, clip.text, clip.gloss, clip.signer, clip.get("media_kind"), clip.get("frames")) == (
-        "dev", "text of b1", "GLOSS B1", "s1", "smplx_params", "3")
-    seq = load_smplx_sequence(tmp_path / "val/b1")
-    with open(tmp_path / "val/b1/10.pkl", "rb") as fh:
+        "dev", "text of b1_0-8-rgb_front", "GLOSS B1", "s1", "smplx_params", "3")
+    folder = tmp_path / clip.media
+    seq = load_smplx_sequence(folder)
+    last_file = folder / fx.SOKE_FRAME_NAMES[layout].format(n=10, clip=folder.name)
+    with open(last_file, "rb") as fh:
         last = pickle.load(fh)
-    assert seq["body_pose"].shape == (3, 63) and seq["expression"].shape == (3, 10) and "leye_pose" not in seq
-    np.testing.assert_array_equal(seq["body_pose"][2], last["body_pose"])  # frame 10 after frame 2: numeric order
+    assert {k: v.shape for k, v in seq.items()} == {"global_orient": (3, 3), "body_pose": (3, 63),
+                                                    "left_hand_pose": (3, 45), "right_hand_pose": (3, 45),
+                                                    "jaw_pose": (3, 3), "betas": (3, 10), "expression": (3, 10)}
+    np.testing.assert_array_equal(seq["body_pose"][2], last["smplx_body_pose"])  # frame 10 after 2: numeric order
+    np.testing.assert_array_equal(seq["left_hand_pose"][2], last["smplx_lhand_pose"])
     unchecked = open_corpus("soke_smplx", tmp_path, annotation="annotation.csv").listing()
     assert counts(unchecked)["train"] == 4 and len(unchecked.quarantined) == 2
+    bad_key = next(c for c in unchecked.clips if c.id == "bad_key")
     with pytest.raises(SmplxSequenceError) as info:
-        load_smplx_sequence(tmp_path / "train/bad_key")
-    assert info.value.file.name == "1.pkl" and info.value.key == "left_hand_pose"
+        load_smplx_sequence(tmp_path / bad_key.media)
+    assert frame_number(info.value.file.stem) == 1 and info.value.key == "smplx_lhand_pose"
+
+
+def test_soke_smplx_names_and_layout_errors(tmp_path):
+    """Exports with the smplx package's key names stack the same way; a CSL-style tree without a split column
+    and a root without clips say what to do."""
+    rng = np.random.default_rng(0)
+    frames = [fx.smplx_frame(rng, names="smplx") for _ in range(2)]
+    fx._write_frames_pkl(tmp_path / "plain" / "train" / "x1", frames, [0, 1])
+    seq = load_smplx_sequence(tmp_path / "plain" / "train" / "x1")
+    np.testing.assert_array_equal(seq["transl"], np.stack([f["transl"] for f in frames]))
+    assert open_corpus("soke_smplx", tmp_path / "plain").listing().clips[0].split == "train"
+    mixed = {**fx.smplx_frame(rng), "body_pose": np.zeros(63, np.float32)}
+    fx._write_frames_pkl(tmp_path / "mixed", [mixed], [0])
+    with pytest.raises(SmplxSequenceError, match="holds both 'smplx_body_pose' and 'body_pose'"):
+        load_smplx_sequence(tmp_path / "mixed")
+    fx._write_frames_pkl(tmp_path / "csl" / "poses" / "c1", [fx.smplx_frame(rng)], [0])
+    with pytest.raises(CorpusError, match="annotation to a CSV with a split column"):
+        open_corpus("soke_smplx", tmp_path / "csl").listing()
+    (tmp_path / "none").mkdir()
+    with pytest.raises(CorpusError, match="none of the split folders"):
+        open_corpus("soke_smplx", tmp_path / "none").listing()
+    assert [frame_number(n) for n in ("12", "images0012", "a_1-b_12_3D", "frame_x")] == [12, 12, 12, None]
 
 
 def test_slt_pickles(tmp_path):
@@ -254,9 +355,189 @@ def test_posefile_index_collection(tmp_path, lexicon_rows):
 def test_posefile_walk_without_index(tmp_path, lexicon_rows):
     fx.build_pose_collection(tmp_path, lexicon_root(), lexicon_rows)
     listing = open_corpus("posefile", tmp_path, language="ase").listing()
-    assert len(listing.clips) == 4 and [q.clip_id for q in listing.quarantined] == ["poses__truncated"]
-    assert "truncated" in listing.quarantined[0].reason
+    assert len(listing.clips) == 4
+    assert {q.clip_id: q.reason.split(":")[0] for q in listing.quarantined} == {
+        "poses__truncated": "poses/truncated.pose", "poses__junk": "poses/junk.pose"}
+    assert all("truncated" in q.reason for q in listing.quarantined)
     assert all(c.split == hash_split(c.id, (0.8, 0.1, 0.1), salt="posefile") for c in listing.clips)
+
+
+# ----------------------------------------------------------------------------------------- unsafe media paths
+@pytest.mark.parametrize("media, fragment", [
+    ("", "empty path"), ("/etc/passwd", "is absolute"), ("C:\\corpus\\a.mp4", "is absolute"),
+    ("\\\\server\\share\\a.mp4", "is absolute"), ("video/../../a.mp4", "'..' component"),
+    ("video\\..\\..\\a.mp4", "'..' component"), ("video/link/a.mp4", "resolves outside the corpus root"),
+    ("video/a\x00.mp4", "cannot be resolved"), ("video/inner/a.mp4", None), ("--7E2sU6zP4_10-5-rgb_front.mp4", None),
+])
+def test_media_path_problem(tmp_path, media, fragment):
+    root = tmp_path / "corpus"
+    (root / "video" / "inner").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    (root / "video" / "link").symlink_to(tmp_path / "elsewhere")
+    problem = media_path_problem(root, media)
+    assert problem is None if fragment is None else (problem.startswith("unsafe media path:") and fragment in problem)
+
+
+def test_media_path_problem_follows_a_symlinked_root(tmp_path):
+    (tmp_path / "real" / "video").mkdir(parents=True)
+    (tmp_path / "root").symlink_to(tmp_path / "real")  # e.g. data/raw/phoenix14t -> a big disk
+    assert media_path_problem(tmp_path / "root", "video/a.mp4") is None
+
+
+def outside_rows(tmp_path: Path, depth: int, name: str) -> tuple[Path, str, str]:
+    """A target beside the corpus root ``tmp_path / "corpus"`` and two annotation values reaching it from a folder
+    ``depth`` levels below the root: one through ``..``, one absolute."""
+    target = tmp_path / "outside" / name
+    return target, "../" * (depth + 1) + f"outside/{name}", str(target)
+
+
+def recording(monkeypatch, module, name: str) -> list[Path]:
+    """Replace ``module.name`` (a media check or reader) by a wrapper that records the paths it is given."""
+    seen: list[Path] = []
+    real = getattr(module, name)
+
+    def wrapper(path, *args, **kwargs):
+        seen.append(Path(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(module, name, wrapper)
+    return seen
+
+
+def assert_refused(listing: Listing, ids: set[str], seen: list[Path], root: Path) -> None:
+    refused = {q.clip_id: q.reason for q in listing.quarantined if q.clip_id in ids}
+    assert set(refused) == ids and all(r.startswith("unsafe media path:") for r in refused.values()), refused
+    assert not ids & {c.id for c in listing.clips}
+    assert seen and all(p.resolve().is_relative_to(root.resolve()) for p in seen), seen  # nothing outside touched
+
+
+def test_how2sign_sentence_names_leaving_the_root_are_quarantined(tmp_path, monkeypatch):
+    import m3t.corpora.how2sign as how2sign
+
+    root = tmp_path / "corpus"
+    fx.build_how2sign(root, "archives")
+    target, up, absolute = outside_rows(tmp_path, 2, "clip")  # clips: <root>/test_rgb_front_clips/raw_videos
+    fx.write_video(target.with_suffix(".mp4"))
+    path = root / "how2sign_realigned_test.csv"
+    path.write_text(path.read_text() + f"v\tv-rgb\tv_8\t{up}\t1.0\t2.0\tUp.\nv\tv-rgb\tv_9\t{absolute}\t1.0\t2.0\tAbs.\n",
+                    encoding="utf-8")
+    seen = recording(monkeypatch, how2sign, "media_file")
+    listing = open_corpus("how2sign", root).listing()
+    assert_refused(listing, {up, absolute}, seen, root)
+    assert counts(listing)["test"] == 2
+
+
+def test_csl_daily_names_leaving_the_root_are_quarantined(tmp_path, monkeypatch):
+    import m3t.corpora.csl_daily as csl_daily
+
+    root = tmp_path / "corpus"
+    fx.build_csl_daily(root)
+    target, up, absolute = outside_rows(tmp_path, 2, "S900000_P0000_T00")  # frames: <root>/sentence/frames_512x512
+    fx.write_frames(target, suffix=".jpg")
+    pkl, split_file = root / "sentence_label/csl2020ct_v2.pkl", root / "sentence_label/split_1.txt"
+    with open(pkl, "rb") as fh:
+        data = pickle.load(fh)
+    for name in (up, absolute):
+        data["info"].append(dict(fx.CSL_REAL_INFO, name=name))
+    with open(pkl, "wb") as fh:
+        pickle.dump(data, fh)
+    split_file.write_text(split_file.read_text() + f"{up}|train\n{absolute}|train\n", encoding="utf-8")
+    checked: list[Path] = []
+    real_check = csl_daily.media_folder
+
+    def media_folder(*args):
+        inner = real_check(*args)
+        return lambda path: checked.append(path) or inner(path)
+
+    monkeypatch.setattr(csl_daily, "media_folder", media_folder)
+    listing = open_corpus("csl_daily", root).listing()
+    assert_refused(listing, {up, absolute}, checked, root)
+    assert counts(listing)["train"] == 4
+
+
+def test_posefile_index_paths_leaving_the_root_are_never_read(tmp_path, monkeypatch, lexicon_rows):
+    import m3t.corpora.posefile as posefile
+
+    root = tmp_path / "corpus"
+    fx.build_pose_collection(root, lexicon_root(), lexicon_rows)
+    target, up, absolute = outside_rows(tmp_path, 0, "secret.pose")
+    target.parent.mkdir()
+    target.write_bytes((root / "poses/ase_0.pose").read_bytes())  # a valid .pose: listing it would mean reading it
+    (root / "poses/link.pose").symlink_to(target)
+    index = root / "index.csv"
+    index.write_text(index.read_text() + f"up,{up},train,A,ase,s0,0\nabs,{absolute},train,A,ase,s0,0\n"
+                     "passwd,/etc/passwd,train,A,ase,s0,0\nlink,poses/link.pose,train,A,ase,s0,0\n", encoding="utf-8")
+    seen = recording(monkeypatch, posefile, "read_pose_info")
+    listing = open_corpus("posefile", root, index="index.csv").listing()
+    assert_refused(listing, {"up", "abs", "passwd", "link"}, seen, root)
+    assert "resolves outside the corpus root" in next(q.reason for q in listing.quarantined if q.clip_id == "link")
+    walked = open_corpus("posefile", root).listing()  # without an index: the walk finds the link, and refuses it
+    assert "unsafe media path" in next(q.reason for q in walked.quarantined if q.clip_id == "poses__link")
+
+
+def test_phoenix_and_nmfs_paths_leaving_the_root_are_quarantined(tmp_path):
+    root = tmp_path / "phoenix"
+    fx.build_phoenix14t(root)
+    target, up, absolute = outside_rows(tmp_path, 3, "clip/1/*.png")  # features/fullFrame-210x260px/<split>/
+    fx.write_phoenix_frames(target.parent)
+    path = root / "annotations/manual/PHOENIX-2014-T.test.corpus.csv"
+    path.write_text(path.read_text() + f"up|{up}|-1|-1|S|G|t\nabs|{absolute}|-1|-1|S|G|t\n", encoding="utf-8")
+    assert_refused(open_corpus("phoenix14t", root).listing(), {"up", "abs"}, [root], root)
+    root = tmp_path / "nmfs"
+    fx.build_nmfs_csl(root)
+    target, up, absolute = outside_rows(tmp_path, 1, "x.mp4")  # video/
+    fx.write_video(target)
+    path = root / "test.txt"
+    path.write_text(path.read_text() + f"{up} 1\n{absolute} 1\n", encoding="utf-8")
+    listing = open_corpus("nmfs_csl", root).listing()
+    ids = {q.clip_id for q in listing.quarantined if q.file == "test.txt"}
+    assert_refused(listing, ids, [root], root)
+    assert len(ids) == 2 and counts(listing)["test"] == 4
+
+
+# ----------------------------------------------------------------------------------------- text and track files
+def test_non_utf8_row_names_its_line_and_byte(tmp_path):
+    fx.build_phoenix14t(tmp_path)
+    path = tmp_path / "annotations/manual/PHOENIX-2014-T.dev.corpus.csv"
+    lines = path.read_bytes().split(b"\n")
+    lines[2] = lines[2].replace(b"morgen regnet es", "morgen regnet es über".encode("latin-1"))
+    path.write_bytes(b"\n".join(lines))
+    offset = len(lines[0]) + 1 + len(lines[1]) + 1 + lines[2].index(b"\xfc")
+    with pytest.raises(CorpusError, match=rf"PHOENIX-2014-T\.dev\.corpus\.csv line 3 \(byte {offset}\): not UTF-8"):
+        open_corpus("phoenix14t", tmp_path).listing()
+    path.write_bytes(b"\xef\xbb\xbf" + b"\n".join(lines))  # a BOM shifts the byte offset, not the line
+    with pytest.raises(CorpusError, match=rf"line 3 \(byte {offset + 3}\)"):
+        open_corpus("phoenix14t", tmp_path).listing()
+
+
+def test_rows_end_at_newlines_only(tmp_path):
+    """A U+2028 / U+0085 inside a sentence (and CRLF line ends) neither splits a row nor shifts row numbers."""
+    fixture = fx.build_phoenix14t(tmp_path)
+    path = tmp_path / "annotations/manual/PHOENIX-2014-T.train.corpus.csv"
+    text = path.read_text(encoding="utf-8").replace("morgen regnet es", "morgen\u2028regnet\x85es")
+    path.write_bytes(text.replace("\n", "\r\n").encode("utf-8"))
+    listing = open_corpus("phoenix14t", tmp_path).listing()
+    check_listing(listing, fixture)
+    assert any(c.text == "morgen\u2028regnet\x85es" for c in listing.clips)
+
+
+@pytest.mark.parametrize("fps", [0.0, -25.0, float("nan"), float("inf")])
+def test_track_files_refuse_unusable_fps(tmp_path, fps):
+    from m3t.trackers.track import Track, TrackError, load_track, save_track
+
+    k = 543
+    track = Track(np.zeros((3, k, 2), np.float32), np.ones((3, k), np.float32), "mediapipe_holistic", (8, 8), 25.0,
+                  np.full(4, np.nan, np.float32), "test")
+    path = save_track(track, tmp_path / "ok.npz")
+    assert load_track(path).fps == 25.0
+    with pytest.raises(TrackError, match=r"bad\.npz: fps .* is not a positive finite number"):
+        save_track(dataclasses.replace(track, fps=fps), tmp_path / "bad.npz")
+    assert not (tmp_path / "bad.npz").exists()
+    with np.load(path) as data:
+        fields = {name: data[name] for name in data.files}
+    np.savez(tmp_path / "bad.npz", **{**fields, "fps": np.array(fps)})
+    with pytest.raises(TrackError, match=r"track file .*bad\.npz: fps .* is not a positive finite number"):
+        load_track(tmp_path / "bad.npz")
 
 
 # ----------------------------------------------------------------------------------------- fingerspelling

@@ -112,13 +112,17 @@ def test_missing_mediapipe_names_the_installer(tmp_path, body, monkeypatch):
     assert outcome.group == "mediapipe not installed"
 
 
-@pytest.mark.parametrize("kind, needed", [("smplx_params", "body.model: smplfx"), ("flame_params", "smplfx"),
-                                          ("keypoints", ".pose")])
-def test_fitted_parameters_are_refused_with_what_is_needed(tmp_path, body, kind, needed):
+@pytest.mark.parametrize("kind, group", [("smplx_params", "needs body.model: smplfx"),
+                                         ("flame_params", "needs body.model: smplfx"),
+                                         ("keypoints", "no source reader")])
+def test_already_fitted_kinds_are_imported_not_tracked(tmp_path, body, kind, group):
+    """Fitted parameters go to the import (m3t.fitting.imports), never to a tracker: under Anny the SMPL-X / FLAME
+    kinds are refused naming the body model they need, and a keypoint clip of a corpus without a reader says so."""
     ctx, _ = phoenix(tmp_path, body)
     clip = Clip("c0", "phoenix14t", "train", "DGS", "s", "t", "g", "x.pkl", 25.0, extra=(("media_kind", kind),))
     outcome = process_clip(clip, ctx)
-    assert outcome.status == "quarantined" and needed in outcome.reason and "not implemented" in outcome.reason
+    assert outcome.status == "quarantined" and outcome.group == group, outcome
+    assert "not implemented" not in outcome.reason
 
 
 @pytest.mark.parametrize("corpora, message", [

@@ -5,11 +5,16 @@ for every row it could not, a :class:`Quarantined` record naming the file, the r
 that is unusable (missing, wrong header, refused pickle) raises :class:`CorpusError` instead. Listing never
 decodes media; it only checks that each clip's media path exists.
 
+Annotation files come from elsewhere, so a media path read from one is never trusted: :func:`media_path_problem`
+refuses absolute paths, ``..`` components and paths that leave the corpus root through a symbolic link, and
+:meth:`Collector.add` applies it to every clip of every adapter before anything under that path is touched.
+
 Each clip carries ``("media_kind", kind)`` in ``Clip.extra`` so the tracking stage can dispatch on it; see
 :data:`MEDIA_KINDS`.
 """
 from __future__ import annotations
 
+import codecs
 import dataclasses
 import gzip
 import hashlib
@@ -18,7 +23,7 @@ import os
 import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
 from m3t.body.model_files import SafeModelUnpickler
@@ -52,13 +57,22 @@ class Listing:
 
 # ----------------------------------------------------------------------------------------- collecting rows
 class Collector:
-    """Accumulates clips and quarantine records of one listing; refuses duplicate ids and missing media."""
+    """Accumulates clips and quarantine records of one listing; refuses unsafe media paths, duplicate ids, media
+    listed twice (where the corpus lists each video once) and missing media."""
 
     def __init__(self, root: Path):
         self.root = root
         self.clips: list[Clip] = []
         self.quarantined: list[Quarantined] = []
         self._seen: dict[str, str] = {}
+        self._media: dict[str, str] = {}  # media -> "clip <id> (<file> row <n>)", for unique_media
+        self._resolved_root: Path | None = None
+
+    def media_problem(self, media: str) -> str | None:
+        """:func:`media_path_problem` under this listing's root (resolved once per listing)."""
+        if self._resolved_root is None:
+            self._resolved_root = self.root.resolve()
+        return media_path_problem(self.root, media, self._resolved_root)
 
     def rel(self, path: Path) -> str:
         """``path`` relative to the root when inside it (portable in reports), else as given."""
@@ -70,22 +84,64 @@ class Collector:
     def quarantine(self, file: Path | str, row: int | None, clip_id: str | None, reason: str) -> None:
         self.quarantined.append(Quarantined(self.rel(Path(file)), row, clip_id, reason))
 
-    def add(self, clip: Clip, file: Path | str, row: int | None, check: Check | None = None) -> bool:
-        """Keep ``clip`` unless its id repeats or ``check(root / media)`` names a problem (then quarantine it)."""
+    def add(self, clip: Clip, file: Path | str, row: int | None, check: Check | None = None,
+            unique_media: bool = False) -> bool:
+        """Keep ``clip`` unless (in this order) its media path is unsafe (:func:`media_path_problem`), its id
+        repeats, ``unique_media`` is set and an earlier clip has the same media, or ``check(root / media)`` names a
+        problem; otherwise quarantine it with the reason. Returns whether the clip was kept."""
         where = f"{self.rel(Path(file))} row {row}"
+        unsafe = self.media_problem(clip.media)
+        if unsafe is not None:
+            self.quarantine(file, row, clip.id, unsafe)
+            return False
         if clip.id in self._seen:
             self.quarantine(file, row, clip.id, f"duplicate clip id (first listed at {self._seen[clip.id]})")
+            return False
+        media_key = PurePosixPath(clip.media).as_posix()
+        if unique_media and media_key in self._media:
+            self.quarantine(file, row, clip.id, f"duplicate media: {clip.media} is already the media of "
+                                                f"{self._media[media_key]}; listed once, under the first name")
             return False
         problem = check(self.root / clip.media) if check is not None else None
         if problem is not None:
             self.quarantine(file, row, clip.id, f"{problem}: {clip.media}")
             return False
         self._seen[clip.id] = where
+        if unique_media:
+            self._media[media_key] = f"clip {clip.id} ({where})"
         self.clips.append(clip)
         return True
 
     def listing(self) -> Listing:
         return Listing(tuple(self.clips), tuple(self.quarantined))
+
+
+def media_path_problem(root: Path, media: str, resolved_root: Path | None = None) -> str | None:
+    """Why the annotation path ``media`` (meant relative to the corpus ``root``) must not be used; ``None`` when
+    it names a place inside ``root``.
+
+    Refused: an empty path; an absolute one (``/etc/passwd``, ``C:\\x``, ``\\\\server\\x``); one with a ``..``
+    component (``/`` or ``\\`` separated); one that resolves outside the resolved root once symbolic links are
+    followed. Only names are inspected and links resolved: nothing under ``media`` is opened. The reason starts
+    with ``unsafe media path:`` so reports group these rows together. ``resolved_root``: ``root.resolve()`` when
+    the caller already has it (a listing checks thousands of rows against one root).
+    """
+    text = str(media)
+    if not text.strip():
+        return "unsafe media path: empty path"
+    if PurePosixPath(text).is_absolute() or PureWindowsPath(text).anchor:
+        return f"unsafe media path: {text!r} is absolute; annotation paths must be relative to the corpus root"
+    if ".." in PurePosixPath(text).parts or ".." in PureWindowsPath(text).parts:
+        return f"unsafe media path: {text!r} has a '..' component, which could leave the corpus root"
+    try:
+        base = resolved_root if resolved_root is not None else root.resolve()
+        target = (base / text).resolve()
+    except (OSError, ValueError, RuntimeError) as exc:  # NUL bytes, symlink loops
+        return f"unsafe media path: {text!r} cannot be resolved ({type(exc).__name__}: {exc})"
+    if not target.is_relative_to(base):
+        return (f"unsafe media path: {text!r} resolves outside the corpus root (to {target}) through a symbolic "
+                "link; move the media under the root, or point the root at a folder that holds it")
+    return None
 
 
 def media_file(path: Path) -> str | None:
@@ -116,13 +172,26 @@ def with_kind(kind: str, /, **more: Any) -> tuple[tuple[str, str], ...]:
 
 # ----------------------------------------------------------------------------------------- text files
 def read_lines(path: Path, hint: str) -> list[str]:
-    """Lines of a UTF-8 text file (BOM tolerated); ``CorpusError`` with ``hint`` when missing or undecodable."""
+    """Lines of a UTF-8 text file (BOM tolerated); ``CorpusError`` with ``hint`` when missing or undecodable.
+
+    Lines end at ``\\n`` only (a ``\\r`` before it is dropped): ``str.splitlines`` would also split at U+2028 or
+    U+0085 inside a sentence and shift every later row number. The error for undecodable bytes names the 1-based
+    line and the file's byte offset of the first bad byte, so a single Latin-1 row can be found and fixed.
+    """
     if not path.is_file():
         raise CorpusError(f"{path} not found. {hint}")
+    data = path.read_bytes()
+    start = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
     try:
-        return path.read_text(encoding="utf-8-sig").splitlines()
+        lines = data[start:].decode("utf-8").split("\n")
+        if lines[-1] == "":
+            lines.pop()  # the final newline ends the last row; it does not start another
+        return [line[:-1] if line.endswith("\r") else line for line in lines]
     except UnicodeDecodeError as exc:
-        raise CorpusError(f"{path} is not UTF-8 text ({exc}). {hint}") from exc
+        offset = start + exc.start
+        line = data[:offset].count(b"\n") + 1
+        raise CorpusError(f"{path} line {line} (byte {offset}): not UTF-8 text ({exc.reason}: "
+                          f"{data[offset:offset + 4]!r}); re-save the file as UTF-8. {hint}") from exc
 
 
 def check_header(path: Path, lines: list[str], expected: str, hint: str) -> None:

@@ -2,14 +2,20 @@
 
 Layout (as distributed)::
 
-    <root>/sentence_label/csl2020ct_v2.pkl     pickle dict; key "info": list of dicts
-                                              {name, length, label_gloss, label_char, label_word, signer}
+    <root>/sentence_label/csl2020ct_v2.pkl     pickle dict; "info": list of dicts {name, length, label_gloss,
+                                              label_char, label_word, label_postag, signer, time}, plus
+                                              "gloss_map", "char_map", "word_map", "postag_map"
     <root>/sentence_label/split_1.txt          header "name|split", rows "<name>|train|dev|test"
-    <root>/sentence/frames_512x512/<name>/     one image per frame
+    <root>/sentence/frames_512x512/<name>/000000.jpg ...
+        (or <root>/sentence_frames-512x512/frames_512x512/<name>/, the frame archive unpacked under its own name)
 
-text = ``"".join(label_word)``, gloss = ``" ".join(label_gloss)``, ``"".join(label_char)`` kept in extra as
-``chars``. The pickle is read with an allow-list unpickler that accepts builtin containers only (other keys such
-as ``gloss_map`` are ignored). A name in the split file but not in the pickle, or the reverse, is quarantined.
+An ``info`` entry looks like ``{'name': 'S000007_P0003_T00', 'length': 55, 'label_gloss': ['他', '谁'],
+'label_char': ['他', '是', '谁', '？'], 'label_word': ['他', '是', '谁', '？'], 'label_postag': ['r', 'v', 'v', 'w'],
+'signer': 3, 'time': 0}``. text = ``"".join(label_word)``, gloss = ``" ".join(label_gloss)``,
+``"".join(label_char)`` kept in extra as ``chars``. The pickle is read with an allow-list unpickler that accepts
+builtin containers only (the ``*_map`` keys are ignored). A name in the split file but not in the pickle, or the
+reverse, is quarantined: the release has one such pair (split row ``S000005_P0004_T00``, pickle entry
+``S000007_P0003_T00``), which some loaders silently rename; here both are reported and nothing is guessed.
 """
 from __future__ import annotations
 
@@ -33,6 +39,7 @@ from m3t.corpora.clip import Clip
 
 SPLIT_HEADER = "name|split"
 INFO_KEYS = ("name", "length", "label_gloss", "label_char", "label_word", "signer")
+FRAME_DIRS = ("sentence/frames_512x512", "sentence_frames-512x512/frames_512x512")
 HINT = "Point the corpus root at the CSL-Daily folder (the one holding sentence_label/ and sentence/)."
 
 
@@ -42,7 +49,7 @@ class CslDailyConfig:
 
     annotation: str = "sentence_label/csl2020ct_v2.pkl"
     split_file: str = "sentence_label/split_1.txt"
-    frames_dir: str = "sentence/frames_512x512"
+    frames_dir: str = ""  # "" = the first of FRAME_DIRS that exists
     fps: float = 30.0
     language: str = "CSL"
 
@@ -86,11 +93,23 @@ class CslDailyCorpus(CorpusAdapter):
                 splits[cols[0]] = (cols[1], row)
         return splits
 
+    def frames_dir(self) -> str:
+        """The frame folder: option ``frames_dir``, else the first of :data:`FRAME_DIRS` under the root."""
+        if self.config.frames_dir:
+            return self.config.frames_dir
+        for candidate in FRAME_DIRS:
+            if (self.root / candidate).is_dir():
+                return candidate
+        looked = ", ".join(str(self.root / c) for c in FRAME_DIRS)
+        raise CorpusError(f"no CSL-Daily frame folder (looked in {looked}); unpack the sentence frames there or "
+                          f"set corpora.csl_daily.options.frames_dir. {HINT}")
+
     def listing(self) -> Listing:
         cfg = self.config
         out = Collector(self.root)
         info = self.read_info()
         splits = self.read_splits(out)
+        frames_dir = PurePosixPath(self.frames_dir())
         pkl, split_path = self.root / cfg.annotation, self.root / cfg.split_file
         check = media_folder()
         listed: set[str] = set()
@@ -109,7 +128,7 @@ class CslDailyCorpus(CorpusAdapter):
                 continue
             clip = Clip(id=name, corpus=self.name, split=splits[name][0], language=cfg.language,
                         signer=str(record["signer"]), text="".join(record["label_word"]),
-                        gloss=" ".join(record["label_gloss"]), media=(PurePosixPath(cfg.frames_dir) / name).as_posix(),
+                        gloss=" ".join(record["label_gloss"]), media=(frames_dir / name).as_posix(),
                         fps=cfg.fps, extra=with_kind("frames", chars="".join(record["label_char"]),
                                                      length=record["length"]))
             out.add(clip, pkl, index, check)

@@ -1,13 +1,23 @@
 """How2Sign (American Sign Language instructional videos) as sentence-level video clips.
 
-Layout (as distributed)::
+Layout, either as the official ``download_how2sign.sh`` builds it (``rgb_front_clips``,
+``english_translation_re-aligned``)::
 
-    <annotations>/how2sign_realigned_{train,val,test}.csv
+    <root>/sentence_level/{train,val,test}/text/en/raw_text/re_aligned/how2sign_realigned_{split}.csv
     <root>/sentence_level/{train,val,test}/rgb_front/raw_videos/<SENTENCE_NAME>.mp4
 
+or as the website's archives unpack by hand, next to the three CSVs::
+
+    <root>/how2sign_realigned_{train,val,test}.csv
+    <root>/{train,val,test}_rgb_front_clips/raw_videos/<SENTENCE_NAME>.mp4
+
 The realigned CSVs are tab-separated with the header
-``VIDEO_ID  VIDEO_NAME  SENTENCE_ID  SENTENCE_NAME  START_REALIGNED  END_REALIGNED  SENTENCE`` (times in seconds).
-``val`` becomes split ``dev``. How2Sign has no signer column, so signer is ``"unknown"`` (nothing is inferred).
+``VIDEO_ID  VIDEO_NAME  SENTENCE_ID  SENTENCE_NAME  START_REALIGNED  END_REALIGNED  SENTENCE``, e.g.
+``--7E2sU6zP4  --7E2sU6zP4-5-rgb_front  --7E2sU6zP4_10  --7E2sU6zP4_10-5-rgb_front  129.06  142.48  And I call
+them decorative elements ...``. The times are seconds in the full video ``VIDEO_NAME`` (How2Sign's answer in
+how2sign.github.io issue 9), not in the sentence clip, so they are kept in ``extra`` (``start_s``, ``end_s``) and
+never used to cut the clip. ``val`` becomes split ``dev``. How2Sign has no signer column, so signer is
+``"unknown"`` (nothing is inferred).
 """
 from __future__ import annotations
 
@@ -18,6 +28,7 @@ from pathlib import Path, PurePosixPath
 from m3t.corpora.base import (
     Collector,
     CorpusAdapter,
+    CorpusError,
     Listing,
     check_header,
     find_file,
@@ -30,6 +41,7 @@ from m3t.corpora.clip import Clip
 COLUMNS = ("VIDEO_ID", "VIDEO_NAME", "SENTENCE_ID", "SENTENCE_NAME", "START_REALIGNED", "END_REALIGNED", "SENTENCE")
 HEADER = "\t".join(COLUMNS)
 SPLIT_NAMES = {"train": "train", "val": "dev", "test": "test"}  # How2Sign name -> project split
+CLIP_DIRS = ("sentence_level/{split}/rgb_front/raw_videos", "{split}_rgb_front_clips/raw_videos")
 HINT = ("Point the corpus root at the How2Sign folder, or set option annotations_dir to the folder holding "
         "how2sign_realigned_<split>.csv and clips_dir to the sentence clip folders.")
 
@@ -39,7 +51,7 @@ class How2SignConfig:
     """Options (params.yaml ``corpora.how2sign``); ``{split}`` in paths is How2Sign's name (train / val / test)."""
 
     annotations_dir: str = ""  # default: the root, then sentence_level/{split}/text/en/raw_text/re_aligned
-    clips_dir: str = "sentence_level/{split}/rgb_front/raw_videos"
+    clips_dir: str = ""  # "" = the first of CLIP_DIRS that exists, per split
     video_suffix: str = ".mp4"
     fps: float = 24.0  # the front-camera videos of How2Sign
     language: str = "ASL"
@@ -61,6 +73,18 @@ class How2SignCorpus(CorpusAdapter):
                   [self.root, self.root / "sentence_level" / split_name / "text/en/raw_text/re_aligned"])
         return find_file(f"how2sign_realigned_{split_name}.csv", places, HINT)
 
+    def clips_dir(self, split_name: str) -> PurePosixPath:
+        """The sentence-clip folder of one split: option ``clips_dir``, else the first of :data:`CLIP_DIRS`."""
+        if self.config.clips_dir:
+            return PurePosixPath(self.config.clips_dir.format(split=split_name))
+        candidates = [c.format(split=split_name) for c in CLIP_DIRS]
+        for candidate in candidates:
+            if (self.root / candidate).is_dir():
+                return PurePosixPath(candidate)
+        looked = ", ".join(str(self.root / c) for c in candidates)
+        raise CorpusError(f"no How2Sign clip folder for split {split_name} (looked in {looked}); unpack "
+                          f"{split_name}_rgb_front_clips.zip there or set corpora.how2sign.options.clips_dir. {HINT}")
+
     def listing(self) -> Listing:
         out = Collector(self.root)
         for split_name, split in SPLIT_NAMES.items():
@@ -71,7 +95,7 @@ class How2SignCorpus(CorpusAdapter):
         cfg = self.config
         lines = read_lines(path, HINT)
         check_header(path, lines, HEADER, f"Is this a How2Sign realigned CSV (tab-separated)? {HINT}")
-        clips_dir = PurePosixPath(cfg.clips_dir.format(split=split_name))
+        clips_dir = self.clips_dir(split_name)
         for row, line in enumerate(lines[1:], start=2):
             if not line.strip():
                 continue

@@ -4,9 +4,13 @@ Layout::
 
     <root>/dictionary.txt      one class per line: "<index>\\t<gloss>" or "<index> <gloss>"
     <root>/train.txt           one clip per line: "<relative video path> <class index>"
-    <root>/test.txt
+    <root>/test.txt            (a line may give only "<class folder>/<video>": the class is then the folder's
+                               number, as in the UCF101-style test lists read by the dataset authors' group)
     <root>/video/...           the videos; list paths are relative to video/ (a path that already starts
                                with "video/" is taken relative to the root)
+
+Every list path goes through :func:`m3t.corpora.base.media_path_problem`: absolute paths, ``..`` components and
+symbolic links out of the root are quarantined.
 
 The corpus has no dev split. ``dev_fraction`` > 0 moves train clips to ``dev`` when
 ``hash_unit(clip id, salt="nmfs_csl-dev") < dev_fraction``: deterministic, independent of file order, and the
@@ -130,19 +134,17 @@ class NmfsCslCorpus(CorpusAdapter):
             for row, line in enumerate(read_lines(path, HINT), start=1):
                 if not line.strip():
                     continue
-                parts = line.strip().rsplit(None, 1)  # paths may hold spaces; the label is the last field
-                if len(parts) != 2 or not parts[1].lstrip("-").isdigit():
-                    out.quarantine(path, row, None, f"malformed row {line!r}: expected '<video path> <class index>'")
+                parsed = _list_row(line)
+                if isinstance(parsed, str):
+                    out.quarantine(path, row, None, parsed)
                     continue
-                video, label = PurePosixPath(parts[0].replace("\\", "/")), int(parts[1])
+                video, label = parsed
                 clip_id = video.with_suffix("").as_posix().replace("/", "__")
                 if label not in classes:
                     out.quarantine(path, row, clip_id, f"class {label} is not in {cfg.dictionary}")
                     continue
-                if video.is_absolute() or ".." in video.parts:
-                    out.quarantine(path, row, clip_id, f"video path {video} must be relative")
-                    continue
-                media = video if video.parts[0] == cfg.video_dir else PurePosixPath(cfg.video_dir) / video
+                parts = video.parts
+                media = video if parts and parts[0] == cfg.video_dir else PurePosixPath(cfg.video_dir) / video
                 subset = "unknown" if confusing is None else ("confusing" if label in confusing else "normal")
                 clip_split = split
                 if split == "train" and hash_unit(clip_id, salt="nmfs_csl-dev") < cfg.dev_fraction:
@@ -152,3 +154,20 @@ class NmfsCslCorpus(CorpusAdapter):
                             label=label, extra=with_kind("video", subset=subset, source_split=split))
                 out.add(clip, path, row, media_file)
         return out.listing()
+
+
+def _list_row(line: str) -> tuple[PurePosixPath, int] | str:
+    """(video path, class) of a train / test list line, or the quarantine reason.
+
+    ``"<path> <class>"`` (paths may hold spaces: the class is the last field) or ``"<class folder>/<file>"``
+    whose first folder is the class number.
+    """
+    text = line.strip()
+    parts = text.rsplit(None, 1)
+    if len(parts) == 2 and parts[1].lstrip("-").isdigit():
+        return PurePosixPath(parts[0].replace("\\", "/")), int(parts[1])
+    video = PurePosixPath(text.replace("\\", "/"))
+    if len(video.parts) >= 2 and video.parts[0].isdigit():
+        return video, int(video.parts[0])
+    return (f"malformed row {line!r}: expected '<video path> <class index>' or '<class folder>/<video>' "
+            "with a numeric class folder")

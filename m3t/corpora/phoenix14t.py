@@ -1,13 +1,19 @@
 """RWTH-PHOENIX-Weather 2014 T (German Sign Language weather forecasts) as frame-folder clips.
 
-Layout (as distributed)::
+Layout (as distributed in ``phoenix-2014-T.v3.tar.gz``; the root is its ``PHOENIX-2014-T`` folder)::
 
     <root>/annotations/manual/PHOENIX-2014-T.{train,dev,test}.corpus.csv   (or directly under <root>)
-    <root>/features/fullFrame-210x260px/<split>/<name>/1/*.png
+    <root>/features/fullFrame-210x260px/<split>/<name>/images0001.png ...
 
-Annotation files are ``|``-separated with the header ``name|video|start|end|speaker|orth|translation``; the
-``video`` column is a glob relative to the frame root (``train/<name>/1/*.png``) and the clip's media is the
-folder of that glob. gloss = ``orth``, text = ``translation``, signer = ``speaker``, 25 fps.
+Annotation files are ``|``-separated with the header ``name|video|start|end|speaker|orth|translation``, e.g.
+``11August_2010_Wednesday_tagesschau-1|11August_2010_Wednesday_tagesschau-1/1/*.png|-1|-1|Signer08|JETZT WETTER
+...|und nun die wettervorhersage ...``. The ``video`` column is a glob relative to the split's frame folder
+``<frames_dir>/<split>/``; its ``1/`` level is a legacy of PHOENIX-2014, whose ``multisigner`` tree does hold
+``<split>/<name>/1/*.png``. The 2014-T release has no ``1/`` folder: the images sit in ``<split>/<name>/``. So the
+clip's media is ``<frames_dir>/<split>/<name>/1`` when that folder exists, else ``<frames_dir>/<split>/<name>``.
+
+gloss = ``orth``, text = ``translation``, signer = ``speaker``, 25 fps. A row whose frame folder is already the
+media of an earlier row (two names, one video) is quarantined, naming the first; the first stays listed.
 """
 from __future__ import annotations
 
@@ -85,13 +91,20 @@ class Phoenix14TCorpus(CorpusAdapter):
             if not translation:
                 out.quarantine(path, row, name, "empty translation")
                 continue
-            glob = PurePosixPath(video)
-            if not video or glob.is_absolute() or ".." in glob.parts:
-                out.quarantine(path, row, name, f"video column {video!r} is not a relative frame glob")
+            folder = PurePosixPath(video).parent  # "<name>/1" in both releases
+            if not video or folder == PurePosixPath("."):
+                out.quarantine(path, row, name, f"video column {video!r} names no frame folder; expected "
+                                                "'<name>/1/*.png'")
                 continue
-            media = (PurePosixPath(cfg.frames_dir) / glob.parent).as_posix()
+            media = PurePosixPath(cfg.frames_dir) / split / folder
+            unsafe = out.media_problem(media.as_posix())  # before probing the tree for a 1/ folder
+            if unsafe is not None:
+                out.quarantine(path, row, name, f"{unsafe} (video column {video!r})")
+                continue
+            if folder.name == "1" and not (self.root / media).is_dir():
+                media = media.parent  # 2014-T: the images sit in <split>/<name>/ itself
             clip = Clip(id=name, corpus=self.name, split=split, language=cfg.language, signer=speaker or "unknown",
-                        text=translation, gloss=orth, media=media, fps=cfg.fps,
-                        extra=with_kind("frames", frame_glob=glob.name, start=start, end=end,
+                        text=translation, gloss=orth, media=media.as_posix(), fps=cfg.fps,
+                        extra=with_kind("frames", frame_glob=PurePosixPath(video).name, start=start, end=end,
                                         annotation=f"{out.rel(path)}:{row}"))
-            out.add(clip, path, row, check)
+            out.add(clip, path, row, check, unique_media=True)

@@ -3,7 +3,9 @@
 Listing reads headers only (:func:`read_pose_info`: fps, frame count, components) and checks that the file is
 as long as its header says, so a truncated file is quarantined without decoding its frames. Clips come from an
 optional index CSV (columns ``id,path,split,text,language,signer`` and optional ``label``; ``path`` relative to
-the root) or, without one, one clip per ``*.pose`` under the root with a deterministic hash split.
+the root) or, without one, one clip per ``*.pose`` under the root with a deterministic hash split. A ``path`` that
+is absolute, has a ``..`` component or leaves the root through a symbolic link is quarantined before the file is
+opened (:func:`m3t.corpora.base.media_path_problem`).
 """
 from __future__ import annotations
 
@@ -221,6 +223,10 @@ class PoseFileCorpus(CorpusAdapter):
             label = r.get("label") or None
             if label is not None and not label.lstrip("-").isdigit():
                 out.quarantine(file, row, clip_id, f"label {label!r} is not an integer")
+                continue
+            unsafe = out.media_problem(r["path"])
+            if unsafe is not None:  # before the header is read: never parse a file outside the collection
+                out.quarantine(file, row, clip_id, unsafe)
                 continue
             media = self.root / r["path"]
             if not media.is_file():

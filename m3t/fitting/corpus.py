@@ -18,6 +18,10 @@ unchanged clip is never re-fitted. Initialisation (M3T App. 0.C):
   and ``fusion.use_external``: those streams fused (:mod:`m3t.fitting.fusion`), then refined around them;
 - otherwise the rest pose, and the clip's quality record says that no external outputs were found.
 
+Clips of already-fitted corpora (media kinds ``smplx_params``, ``flame_params``, ``keypoints``) are imported
+instead (:mod:`m3t.fitting.imports`): no track, no fit; their part files are addressed by the source arrays'
+bytes and the conversion settings, and go through the same cache, quarantine and reports.
+
 A clip that fails is quarantined with its reason; the others go on. :func:`m3t.fitting.report.consolidate`
 writes the shards and reports.
 """
@@ -32,12 +36,13 @@ from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from m3t.atomic import write_json
 from m3t.body.factory import body_cache_key, load_body_model
 from m3t.body.metric_sets import joints_for
-from m3t.body.protocol import BodyModel, as_tensors
+from m3t.body.protocol import BodyModel, ModalityLayout, as_tensors
 from m3t.corpora.base import CorpusAdapter, Listing, open_corpus
 from m3t.corpora.clip import Clip
 from m3t.fitting.config import FitCorpusConfig, FitJob  # noqa: F401 - FitCorpusConfig: the engine's config
@@ -48,6 +53,16 @@ from m3t.fitting.fusion import (
     describe,
     initialise_from_trackers,
     refine,
+)
+from m3t.fitting.imports import (
+    IMPORTERS,
+    ImportSettings,
+    check_importable,
+    import_clip,
+    import_settings,
+    imported_kind,
+    plan_import,
+    read_source,
 )
 from m3t.fitting.quality import part_reprojection_px, track_coverage
 from m3t.fitting.report import ClipOutcome, FitCorpusReport, consolidate
@@ -100,6 +115,7 @@ class FitContext:
         self._corpus: CorpusAdapter | None = None
         self._synthetic = None
         self._body_key: object | None = None
+        self._import_settings: ImportSettings | None = None
 
     @property
     def body(self) -> BodyModel:
@@ -118,6 +134,13 @@ class FitContext:
         if self._corpus is None:
             self._corpus = open_corpus(self.job.corpus, self.job.source.root, **self.job.source.options)
         return self._corpus
+
+    @property
+    def import_settings(self) -> ImportSettings:
+        """What importing this job's clips depends on (reads SMPL-X's mean hand once per process if needed)."""
+        if self._import_settings is None:
+            self._import_settings = import_settings(self.job, self.corpus.config)
+        return self._import_settings
 
     def ground_truth(self, clip: Clip):
         """(params, identity, camera) of a synthetic clip."""
@@ -219,28 +242,53 @@ def fit_clip(clip: Clip, track_path: Path, outputs: TrackerOutputs | None, key: 
     return fitted, init
 
 
+def part_path(clip: Clip, key: str, ctx: FitContext) -> Path:
+    return Path(ctx.job.run.cache_dir) / "parts" / f"{clip.id.replace('/', '_')}-{key}.parquet"
+
+
+def _part_outcome(clip: Clip, part: Path, make: Callable[[], tuple[FittedClip, dict[str, Any]]],
+                  layout: ModalityLayout, start: float, seen: dict[str, Any]) -> ClipOutcome:
+    """The clip's part file from the cache when it and its record exist, else ``make()`` written atomically."""
+    init_file = part.with_suffix(".init.json")
+    if part.exists() and init_file.exists():
+        fitted = read_shard(part).clips[0]
+        return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics,
+                           frames=fitted.num_frames, init=json.loads(init_file.read_text()), **seen)
+    fitted, init = make()
+    part.parent.mkdir(parents=True, exist_ok=True)
+    write_json(init_file, init)  # before the part: a part on disk always has its record
+    write_shard(part, [fitted], layout)
+    return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
+                       frames=fitted.num_frames, seconds=time.perf_counter() - start, init=init, **seen)
+
+
+def _import_part(clip: Clip, kind: str, ctx: FitContext, start: float) -> ClipOutcome:
+    """An already-fitted clip's part: keyed by its source arrays and the conversion settings."""
+    settings = ctx.import_settings
+    check_importable(clip, kind, settings)
+    arrays = sorted(read_source(clip, kind, ctx.corpus).items())
+    key = _digest(KEY_VERSION, kind, settings.key(), [[name, list(a.shape), str(a.dtype)] for name, a in arrays],
+                  *[np.ascontiguousarray(a).tobytes() for _, a in arrays])
+    layout = settings.layout(kind, dims=arrays[0][1].shape[1])  # dims: the width of slt's one array
+    return _part_outcome(clip, part_path(clip, key, ctx), lambda: import_clip(clip, kind, dict(arrays), key, settings),
+                         layout, start, {})
+
+
 def process_clip(clip: Clip, ctx: FitContext) -> ClipOutcome:
-    """Track + fit + write one clip's part file; never raises for a bad clip (quarantines it)."""
+    """Track + fit (or import) + write one clip's part file; never raises for a bad clip (quarantines it)."""
     start = time.perf_counter()
     seen: dict[str, Any] = {}
     try:
+        kind = media_kind(clip)
+        if kind in IMPORTERS:
+            return _import_part(clip, kind, ctx, start)
         track_path = track_clip(clip, ctx)
         track = load_track(track_path)
         seen = {"coverage": track_coverage(track), "track_frames": track.num_frames}
         outputs = external_outputs(clip, ctx)
         key = fit_key(track_path, outputs, ctx)
-        part = Path(ctx.job.run.cache_dir) / "parts" / f"{clip.id.replace('/', '_')}-{key}.parquet"
-        init_file = part.with_suffix(".init.json")
-        if part.exists() and init_file.exists():
-            fitted = read_shard(part).clips[0]
-            return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics,
-                               frames=fitted.num_frames, init=json.loads(init_file.read_text()), **seen)
-        fitted, init = fit_clip(clip, track_path, outputs, key, ctx)
-        part.parent.mkdir(parents=True, exist_ok=True)
-        write_json(init_file, init)  # before the part: a part on disk always has its record
-        write_shard(part, [fitted], ctx.body.layout)
-        return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
-                           frames=fitted.num_frames, seconds=time.perf_counter() - start, init=init, **seen)
+        return _part_outcome(clip, part_path(clip, key, ctx), lambda: fit_clip(clip, track_path, outputs, key, ctx),
+                             ctx.body.layout, start, seen)
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - any failure of one clip quarantines that clip only
@@ -311,6 +359,11 @@ def run_fit_corpus(
         listing = list_corpus(job)
         clips, outcomes = listing.clips, listing_outcomes(listing)
     clips = list(clips)
+    layout = None
+    kind = imported_kind(job.corpus)
+    if kind is not None:  # already-fitted clips: the import's layout, clips it cannot shard together refused now
+        layout, clips, refused = plan_import(kind, (ctx or worker_context(job)).import_settings, clips)
+        outcomes += refused
     own = executor is None and ctx is None
     executor = default_executor(job.run.workers) if own else executor
     try:
@@ -325,7 +378,7 @@ def run_fit_corpus(
     finally:
         if own and executor is not None:
             executor.shutdown(cancel_futures=True)
-    layout = (ctx or worker_context(job)).body.layout
+    layout = layout or (ctx or worker_context(job)).body.layout
     return consolidate(outcomes, layout, job.shards_dir, job.corpus, time.perf_counter() - start)
 
 
@@ -338,12 +391,15 @@ def fit_and_log(job: FitJob, experiment, executor: Executor | None = None, progr
     report = run_fit_corpus(job, executor, progress=progress, on_outcome=on_outcome)
     if log:
         ctx = worker_context(job)
+        kind = imported_kind(job.corpus)
+        # pictures need the body model and full-body streams: none for face-only or slt feature shards
+        render = job.run.render_clips if kind in (None, "smplx_params") else 0
         sections = {"body": job.body, "fitting": job.fitting, "fit_corpus": job.run,
                     **({"tracker": job.tracker} if job.corpus == "synthetic" else {"fusion": job.fusion})}
         logged = {**section_params(**sections), "corpus": job.corpus,
                   f"corpora.{job.corpus}": {"root": job.source.root, "options": job.source.options},
                   "shards_dir": job.shards_dir}
         truth = ctx.ground_truth if job.corpus == "synthetic" else None
-        log_fit_corpus(experiment, logged, report, ctx.body, job.corpus, job.shards_dir, job.run.cache_dir,
-                       job.run.render_clips, truth)
+        log_fit_corpus(experiment, logged, report, ctx.body if render else None, job.corpus, job.shards_dir,
+                       job.run.cache_dir, render, truth)
     return report

@@ -108,9 +108,28 @@ def consolidate(outcomes: list[ClipOutcome], layout: ModalityLayout, shards_dir:
     summary = summarise(outcomes)
     write_json(out_dir / "summary.json", {k: _finite_or_none(v) for k, v in summary.items()})
     quality = quality_report(outcomes, corpus)
+    quality = dataclasses.replace(quality, summary={**quality.summary, **import_summary(outcomes)})
     write_quality(quality, out_dir, write_text)
     return FitCorpusReport(shards=shards, outcomes=outcomes, summary=summary, quality=quality.summary,
                            run_stats=run_stats(outcomes, wall_seconds))
+
+
+def import_summary(outcomes: list[ClipOutcome]) -> dict[str, float]:
+    """Over the imported clips (:mod:`m3t.fitting.imports`): their count, the frame-weighted fraction of frames
+    that held NaN / inf (replaced by the nearest finite frame) and each source array's range over every clip."""
+    done = [o for o in outcomes if o.status != "quarantined" and o.init.get("init_source", "").startswith("imported")]
+    if not done:
+        return {}
+    frames = sum(o.frames for o in done)
+    out: dict[str, float] = {
+        "imported_clips": len(done),
+        "imported_nonfinite_frame_frac": sum(o.metrics.get("src_nonfinite_frame_frac", 0.0) * o.frames
+                                             for o in done) / frames if frames else math.nan,
+    }
+    for key in sorted({k for o in done for k in o.metrics if k.startswith("src_") and k.endswith(("_min", "_max"))}):
+        values = [o.metrics[key] for o in done if key in o.metrics]
+        out[f"imported_{key.removeprefix('src_')}"] = float(min(values) if key.endswith("_min") else max(values))
+    return out
 
 
 def _finite_or_none(value: Any) -> Any:
@@ -122,7 +141,8 @@ def log_fit_corpus(experiment, logged_params: dict[str, Any], report: FitCorpusR
     """Log a corpus run to MLflow: params, results and run statistics, quarantine and quality reports,
     fitted-vs-truth pictures and the fitted mesh of the first ``render_clips`` clips.
 
-    ``ground_truth(clip) -> (params, identity, camera)`` for synthetic clips (None: no truth to draw)."""
+    ``ground_truth(clip) -> (params, identity, camera)`` for synthetic clips (None: no truth to draw). Imported
+    clips have no camera: only their mesh is pictured. ``body`` may be None when ``render_clips`` is 0."""
     from m3t.experiment import start_run
     from m3t.render.mesh import log_fitted_frame
     from m3t.render.skeleton import render_fit_comparison
@@ -140,10 +160,11 @@ def log_fit_corpus(experiment, logged_params: dict[str, Any], report: FitCorpusR
         run.log_artifact(plot_quality(quality, render_dir / f"quality-{corpus}.png"), "quality")
         for outcome in [o for o in report.outcomes if o.part is not None][:render_clips]:
             fitted = read_shard(outcome.part).clips[0]
-            truth = ground_truth(fitted.clip) if ground_truth is not None else None
-            image = render_dir / f"{fitted.clip.id}.png"
-            run.log_artifact(render_fit_comparison(body, fitted, truth, image), "fit_vs_ground_truth")
+            if fitted.camera:  # a fit's camera; imported clips have none
+                truth = ground_truth(fitted.clip) if ground_truth is not None else None
+                image = render_dir / f"{fitted.clip.id}.png"
+                run.log_artifact(render_fit_comparison(body, fitted, truth, image), "fit_vs_ground_truth")
             # the fitted mesh of the middle frame: PLY + a rendered picture
             log_fitted_frame(run, body, fitted.params, fitted.identity, fitted.num_frames // 2, render_dir,
-                             fitted.camera, stem=fitted.clip.id)
+                             fitted.camera or None, stem=fitted.clip.id)
         return run.run_id

@@ -144,22 +144,30 @@ def dtw(cost: np.ndarray | torch.Tensor) -> DTWResult:
     return dtw_batch([cost])[0]
 
 
-def jpe_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS) -> torch.Tensor:
+def jpe_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS,
+                        measure: slice | None = None) -> torch.Tensor:
     """SOKE's ``dist_jpe`` for every frame pair: root-relative mean point distance.
 
     Parameters
     ----------
     pred : (T1, K, 3) predicted points; gt : (T2, K, 3) ground-truth points. Point 0 of each frame is the
-        region's root (the neck for the body, the wrist for a hand); both are translated to put it at the origin.
+        region's root (the neck for the body, the wrist for a hand; SOKE's pelvis in ``soke_exact`` mode); both
+        are translated to put it at the origin.
     chunk_elements : points are processed in chunks of about this many (K x T1 x T2) distances.
+    measure : the points whose distances are averaged; None: all K, the root included (its distance is 0).
+        SOKE's body measures 12 points after the pelvis (``l2_dist_align``'s ``wanted``).
 
     Returns
     -------
     (T1, T2) tensor in pred's dtype and units.
     """
-    t1, k, t2 = check_sequence_pair(pred, gt)
-    x = (pred - pred[:, :1]).transpose(0, 1)  # (K, T1, 3)
-    y = (gt - gt[:, :1]).transpose(0, 1)  # (K, T2, 3)
+    t1, _, t2 = check_sequence_pair(pred, gt)
+    picked = slice(None) if measure is None else measure
+    x = (pred[:, picked] - pred[:, :1]).transpose(0, 1)  # (K', T1, 3)
+    y = (gt[:, picked] - gt[:, :1]).transpose(0, 1)  # (K', T2, 3)
+    k = x.shape[0]
+    if k == 0:
+        raise ValueError(f"measure {measure} selects none of the {pred.shape[1]} points")
     total = torch.zeros(t1, t2, dtype=pred.dtype, device=pred.device)
     step = max(1, chunk_elements // (t1 * t2))
     for start in range(0, k, step):

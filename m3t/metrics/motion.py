@@ -13,6 +13,17 @@ arrays in metres, so no body model is needed here:
 
 Raw costs grow with sequence length (SOKE reports them so); the path-normalised ones compare across lengths.
 
+**Two modes** (:attr:`MotionMetricsConfig.mode`). ``"m3t"`` (the default, every table of this project) roots
+the body at the neck and fits the body's Procrustes on its 12 points. Anny, the default body model, has no
+SMPL-X pelvis or spine convention (its body stream moves two spine bones), and rooting at the neck measures
+the signing space without the spine, which the two body models then share. Its rooting equals SOKE's
+whenever the spine does not move relative to the pelvis, as in SOKE's own evaluation, which zeroes the spine,
+and always on SMPL-FX, which has no spine joints: DTW-JPE is then the same number in both modes. ``"soke_exact"``
+reproduces SOKE's released arithmetic (:mod:`m3t.metrics.soke`): the body region holds the root (SOKE's
+pelvis) first, then the 12 measured points, then the further points SOKE's Procrustes fits; DTW-JPE translates
+by the root and measures the 12, DTW-PA-JPE fits on all points and measures the 12; the hands are unchanged,
+and SOKE's names are added (``DTW_MPJPE_PA_body`` / ``_lhand`` / ``_rhand``, which are DTW-JPE values).
+
 Axis legend: T1 prediction frames, T2 ground-truth frames, K points of a region.
 """
 from __future__ import annotations
@@ -20,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -27,13 +39,15 @@ from tqdm.auto import tqdm
 
 from m3t.metrics.dtw import dtw_padded, jpe_distance_matrix
 from m3t.metrics.procrustes import pa_distance_matrix
+from m3t.metrics.soke import BODY_MEASURED, soke_names
 
 Regions = Mapping[str, "np.ndarray | torch.Tensor"]
 
 
 @dataclass(frozen=True)
 class MotionMetricsConfig:
-    """Which regions get DTW-PA (Procrustes per frame pair is the costly part), the solver, the batch size."""
+    """Which regions get DTW-PA (Procrustes per frame pair is the costly part), the solver, the batch size,
+    and whose conventions root and measure the body (``mode``, see the module docstring)."""
 
     procrustes_regions: tuple[str, ...] = ("body", "left_hand", "right_hand")
     procrustes_method: str = "quaternion"
@@ -42,6 +56,12 @@ class MotionMetricsConfig:
     # torch.set_num_threads(1): intra-op threads on top oversubscribe the cores, and on a shared machine an
     # OpenMP barrier waiting for a descheduled thread was measured 10-30x slower.
     workers: int = 1
+    mode: Literal["m3t", "soke_exact"] = "m3t"
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("m3t", "soke_exact"):
+            raise ValueError(f"motion metric mode {self.mode!r} unknown; use 'm3t' (neck-rooted body, this "
+                             "project's tables) or 'soke_exact' (SOKE's pelvis-rooted body, needs SMPL-FX)")
 
 
 def error_name(region: str, procrustes: bool) -> str:
@@ -66,7 +86,13 @@ def _region_tensor(value: object, side: str, region: str, index: int) -> torch.T
     return tensor
 
 
-def _validated(pred: Regions, gt: Regions, index: int) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+def _measured(region: str, config: MotionMetricsConfig) -> slice | None:
+    """The points a region's distances average over (None: all of them)."""
+    return BODY_MEASURED if config.mode == "soke_exact" and region == "body" else None
+
+
+def _validated(pred: Regions, gt: Regions, index: int,
+               config: MotionMetricsConfig) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """{region: (pred (T1, K, 3), gt (T2, K, 3))} float64, after checking both sides agree."""
     if set(pred) != set(gt):
         only_pred, only_gt = sorted(set(pred) - set(gt)), sorted(set(gt) - set(pred))
@@ -81,6 +107,12 @@ def _validated(pred: Regions, gt: Regions, index: int) -> dict[str, tuple[torch.
         if p.shape[1] != g.shape[1]:
             raise ValueError(f"pair {index}, region {region!r}: prediction {tuple(p.shape)} and ground truth "
                              f"{tuple(g.shape)} have different point counts; use the same metric set on both")
+        measured = _measured(region, config)
+        if measured is not None and p.shape[1] < measured.stop:
+            raise ValueError(f"pair {index}, region {region!r}: {p.shape[1]} points, but motion metric mode "
+                             f"'soke_exact' expects SOKE's layout of at least {measured.stop}: the root first, then "
+                             "the 12 measured points, then the further points its Procrustes fits; pose them with "
+                             "MotionScorer in that mode (body.model: smplfx) or score with mode 'm3t'")
         out[region] = (p, g)
     return out
 
@@ -102,7 +134,9 @@ def _cost_tables(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jo
     def fill(b: int) -> None:
         n, region, pa = jobs[b]
         p, g = checked[n][region]
-        cost = pa_distance_matrix(p, g, config.procrustes_method) if pa else jpe_distance_matrix(p, g)
+        measure = _measured(region, config)
+        cost = (pa_distance_matrix(p, g, config.procrustes_method, measure=measure) if pa
+                else jpe_distance_matrix(p, g, measure=measure))
         tables[:p.shape[0], :g.shape[0], b] = cost.cpu()  # each job owns its slice of the batch
 
     if config.workers > 1:
@@ -122,7 +156,7 @@ def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = Fa
     batches of similar length so that their DTW tables are swept together. Returns one metrics dict per pair,
     in input order.
     """
-    checked = [_validated(p, g, n) for n, (p, g) in enumerate(pairs)]
+    checked = [_validated(p, g, n, config) for n, (p, g) in enumerate(pairs)]
     results: list[dict[str, float]] = [{} for _ in checked]
     # Similar lengths together keep the zero padding of each batch small.
     order = sorted(range(len(checked)), key=lambda n: max(p.shape[0] + g.shape[0] for p, g in checked[n].values()))
@@ -138,6 +172,8 @@ def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = Fa
             bar.update(len(batch))
     for metrics in results:
         _add_hand_means(metrics)
+        if config.mode == "soke_exact":
+            metrics.update(soke_names(metrics))
     return results
 
 

@@ -255,7 +255,7 @@ def check_sequence_pair(pred: torch.Tensor, gt: torch.Tensor) -> tuple[int, int,
 
 
 def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quaternion",
-                       chunk_pairs: int = CHUNK_PAIRS) -> torch.Tensor:
+                       chunk_pairs: int = CHUNK_PAIRS, measure: slice | None = None) -> torch.Tensor:
     """SOKE's ``dist_pa`` for every frame pair: mean point distance after aligning pred[i] onto gt[j].
 
     Parameters
@@ -263,6 +263,8 @@ def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quat
     pred : (T1, K, 3) predicted points; gt : (T2, K, 3) ground-truth points (same units, K >= 1).
     method : Procrustes solver, see ``rotation_from_covariance``.
     chunk_pairs : rows of pred are processed in chunks of about this many frame pairs (bounds memory).
+    measure : the points whose distances are averaged after the alignment, which is always fitted on all K
+        (SOKE's dormant PA: ``rigid_align`` on every joint, then the subset); None: all K.
 
     Returns
     -------
@@ -275,6 +277,11 @@ def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quat
     # All cross-covariances in one product: (3*T1, K) @ (K, 3*T2) -> S[a, b, i, j] = sum_k x_iak y_jbk.
     cov = xs.permute(1, 0, 2).reshape(3 * t1, k) @ yt.permute(2, 1, 0).reshape(k, 3 * t2)
     cov = cov.reshape(3, t1, 3, t2).transpose(1, 2).contiguous()  # (3, 3, T1, T2)
+    if measure is not None:  # residuals of the measured points only, in the full set's centred frame
+        xs, yt = xs[:, :, measure], yt[:, :, measure].contiguous()  # (T1, 3, K'), (T2, 3, K')
+        k = yt.shape[-1]
+        if k == 0:
+            raise ValueError(f"measure {measure} selects none of the {pred.shape[1]} points")
     rows = max(1, chunk_pairs // t2)
     sub_rows = max(1, RESIDUAL_ELEMENTS // (t2 * 3 * k))
     neg_target = (-yt).reshape(t2 * 3, k)

@@ -5,7 +5,9 @@ Any model that produces parameter sequences in the body model's layout is scored
 back-translation baselines); models that produce points (the skeletal SGSA / PT) score posed pairs through
 :func:`score_point_pairs`, the same means and groups: nothing below knows about tokens, vocabularies or text. Both sides of a pair are
 posed with the same signer identity, so the error is the motion's alone. The points are the metric sets of
-:mod:`m3t.body.metric_sets`, the metrics those of :mod:`m3t.metrics.motion`.
+:mod:`m3t.body.metric_sets`, the metrics those of :mod:`m3t.metrics.motion`. With ``MotionMetricsConfig(mode=
+"soke_exact")`` the body region is SOKE's (:func:`m3t.metrics.soke.soke_keypoints`: root, 12 measured points,
+the further points of its Procrustes) and SOKE's zeroed joints are zeroed before posing; SMPL-FX only.
 
 A reference is posed once: :meth:`MotionScorer.reference` stores its points under the clip id, and every
 later :meth:`MotionScorer.score` of that clip reuses them (a checkpoint selection scores the same clips at
@@ -27,6 +29,7 @@ import torch
 from m3t.body.metric_sets import metric_keypoints, metric_points
 from m3t.body.protocol import BodyModel, as_tensors
 from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs, summarise
+from m3t.metrics.soke import soke_keypoints, zero_soke_joints
 
 ParamSequence = Mapping[str, np.ndarray]
 """Modality name -> (T, D_m) per-frame parameters in the body model's layout."""
@@ -79,19 +82,25 @@ def _frames(params: ParamSequence) -> int:
 
 
 class MotionScorer:
-    """Poses parameter sequences into the metric point sets of ``body`` and scores predictions against references."""
+    """Poses parameter sequences into the metric point sets of ``body`` and scores predictions against references.
+
+    ``config.mode == "soke_exact"`` needs an SMPL-FX ``body`` (:class:`m3t.metrics.soke.SokeModeError` otherwise).
+    """
 
     def __init__(self, body: BodyModel, config: MotionMetricsConfig = MotionMetricsConfig()):
         self.body, self.config = body, config
-        self.sets = metric_keypoints(body)
+        self.sets = soke_keypoints(body) if config.mode == "soke_exact" else metric_keypoints(body)
         self._references: dict[str, dict[str, np.ndarray]] = {}
 
     @torch.no_grad()
     def points(self, params: ParamSequence, identity: np.ndarray) -> dict[str, np.ndarray]:
         """(T, D_m) per modality and (P,) identity -> {region: (T, K, 3) float64 metres}."""
         ident = torch.as_tensor(np.asarray(identity), dtype=torch.float32)
+        tensors = as_tensors(params)
+        if self.config.mode == "soke_exact":
+            tensors = zero_soke_joints(self.body.layout, tensors)
         return {k: v.numpy().astype(np.float64)
-                for k, v in metric_points(self.body, as_tensors(params), ident, self.sets).items()}
+                for k, v in metric_points(self.body, tensors, ident, self.sets).items()}
 
     def reference(self, clip_id: str, params: ParamSequence, identity: np.ndarray) -> None:
         """Pose and store the reference of ``clip_id`` (replacing one stored before under that id)."""

@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from m3t.body.protocol import BodyModel
+from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.scorer import MotionPair, MotionScorer
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
@@ -46,7 +47,7 @@ class SMLMEvaluator:
 
     def __init__(self, body: BodyModel, tokenizers: dict[str, MotionTokenizer], vocab: SignVocabulary,
                  examples: Sequence[Example], references: dict[str, FittedClip], batch_size: int = 16,
-                 max_clips: int = 0, translation: bool = True):
+                 max_clips: int = 0, translation: bool = True, motion: MotionMetricsConfig = MotionMetricsConfig()):
         missing = [e.clip_id for e in examples if e.clip_id not in references]
         if missing:
             raise KeyError(f"no fitted motion for clips {missing[:5]} (of {len(missing)}); the token shards and the "
@@ -55,7 +56,7 @@ class SMLMEvaluator:
         self.examples = list(examples)[: max_clips] if max_clips > 0 else list(examples)
         self.references = {e.clip_id: references[e.clip_id] for e in self.examples}
         self.batch_size, self.translation = batch_size, translation
-        self.scorer = MotionScorer(body)
+        self.scorer = MotionScorer(body, motion)  # motion.mode "soke_exact": SOKE's body rooting (SMPL-FX only)
         for cid, ref in self.references.items():  # posed once, reused at every evaluation
             self.scorer.reference(cid, ref.params, ref.identity)
 

@@ -10,9 +10,9 @@ media kind         tracking
 pose               the ``.pose`` file -> track (:mod:`m3t.trackers.posefile`)
 spelled            the word's letter ``.pose`` files concatenated -> track (same conversion)
 video, frames      MediaPipe Holistic (:mod:`m3t.trackers.mediapipe_holistic`), world landmarks kept
-smplx_params,      refused with the reason (:class:`ClipRefused`): already-fitted parameters or bare
-flame_params,      keypoints are not tracked, and their import is not implemented
-keypoints
+smplx_params       never tracked (:data:`REFUSED`, :class:`ClipRefused` here): fit-corpus imports them
+flame_params       (:mod:`m3t.fitting.imports`): SMPL-X fits -> SMPL-FX shards, FLAME fits -> face-only
+keypoints          shards, slt ``sign`` arrays -> feature shards as stored, no invented joint mapping
 =================  =====================================================================================
 """
 from __future__ import annotations
@@ -25,13 +25,13 @@ from m3t.corpora.clip import Clip
 from m3t.trackers.track import Track
 
 POSEFILE_VERSION = "posefile-v1"  # bump when the .pose -> track conversion changes its output
-REFUSED = {
-    "smplx_params": "already-fitted SMPL-X parameters: they need body.model: smplfx and an import into shards, "
-                    "which is not implemented yet (they are not re-tracked or re-fitted)",
-    "flame_params": "already-fitted FLAME parameters: they need body.model: smplfx and an import into face "
-                    "shards, which is not implemented yet",
-    "keypoints": "pre-extracted keypoint arrays without a documented landmark layout: converting them to the "
-                 "mediapipe_holistic track layout is not implemented; export them as .pose files instead",
+REFUSED = {  # media kinds fit-corpus imports instead of tracking (m3t.fitting.imports.IMPORTERS)
+    "smplx_params": "already-fitted SMPL-X parameters are imported into SMPL-FX shards (body.model: smplfx), "
+                    "not tracked",
+    "flame_params": "already-fitted FLAME parameters are imported into face-only shards (body.model: smplfx), "
+                    "not tracked",
+    "keypoints": "pre-extracted per-frame arrays without a documented landmark layout are imported as stored, "
+                 "not tracked; to fit a body model to keypoints, export them as .pose files",
 }
 
 
@@ -85,7 +85,7 @@ def media_key(clip: Clip, root: Path, mediapipe_cfg: object | None = None) -> ob
         content = _folder_stamp(media) if media.is_dir() else file_digest(media)
         return [kind, dataclasses.asdict(mediapipe_cfg) if mediapipe_cfg is not None else None, clip.fps, content]
     if kind in REFUSED:
-        raise ClipRefused(f"{kind} not importable", f"clip {clip.id} ({clip.media}): {REFUSED[kind]}")
+        raise ClipRefused(f"{kind} not trackable", f"clip {clip.id} ({clip.media}): {REFUSED[kind]}")
     raise ClipRefused(f"media kind {kind}", f"clip {clip.id}: media kind {kind!r} has no tracker here")
 
 

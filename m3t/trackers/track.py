@@ -6,7 +6,7 @@ keypoints : (T, K, 2) float32, pixels (origin top-left); NaN where the tracker f
 confidence : (T, K) float32 in [0, 1]; 0 where missing
 landmark_set : str, e.g. ``"mediapipe_holistic"`` (K = 33 pose + 21 left hand + 21 right hand + 468 face)
 image_size : (2,) int, (width, height)
-fps : float
+fps : float, finite and > 0 (files with any other value are refused on save and on load)
 intrinsics : (4,) float32 (fx, fy, cx, cy) when the camera is calibrated, else NaN
 tracker : str, the tracker that wrote it
 init__<modality> : (T, D_m) float32, optional per-frame body-model parameters from 3D trackers (the paper's
@@ -18,13 +18,13 @@ extra__<name> : (T, ...) float32, optional per-frame side data kept with the tra
 """
 from __future__ import annotations
 
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from m3t.atomic import atomic_path
 
 MEDIAPIPE_HOLISTIC_PARTS = {"pose": 33, "left_hand": 21, "right_hand": 21, "face": 468}
 
@@ -61,29 +61,34 @@ class Track:
         return self.keypoints.shape[0]
 
 
+def _fps_problem(fps: object) -> str | None:
+    """Why ``fps`` is not a usable frame rate (a finite number > 0), or ``None``."""
+    value = np.asarray(fps)
+    if value.size != 1 or value.dtype.kind not in "iuf":
+        return f"fps {value.tolist()!r} is not a single number"
+    rate = float(value.reshape(()))
+    return None if np.isfinite(rate) and rate > 0 else f"fps {rate} is not a positive finite number"
+
+
 def save_track(track: Track, path: str | Path) -> Path:
     """Write atomically (temp file + rename) so a killed run never leaves a half-written track."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(
-                fh,
-                keypoints=track.keypoints.astype(np.float32),
-                confidence=track.confidence.astype(np.float32),
-                landmark_set=np.array(track.landmark_set),
-                image_size=np.asarray(track.image_size, dtype=np.int64),
-                fps=np.array(track.fps, dtype=np.float64),
-                intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
-                tracker=np.array(track.tracker),
-                **{f"init__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.init or {}).items()},
-                **{f"extra__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.extras or {}).items()},
-            )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    problem = _fps_problem(track.fps)
+    if problem is not None:  # a track is timed by its fps: refuse to write one nothing downstream can use
+        raise TrackError(f"track for {path}: {problem}; the tracker must report the clip's frame rate")
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(
+            tmp,
+            keypoints=track.keypoints.astype(np.float32),
+            confidence=track.confidence.astype(np.float32),
+            landmark_set=np.array(track.landmark_set),
+            image_size=np.asarray(track.image_size, dtype=np.int64),
+            fps=np.array(track.fps, dtype=np.float64),
+            intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
+            tracker=np.array(track.tracker),
+            **{f"init__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.init or {}).items()},
+            **{f"extra__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.extras or {}).items()},
+        )
     return path
 
 
@@ -106,6 +111,10 @@ def load_track(path: str | Path) -> Track:
         raise TrackError(f"track file {path}: keypoints {kp.shape} / confidence {conf.shape} are not (T, K, 2) / (T, K)")
     if kp.shape[0] == 0:
         raise TrackError(f"track file {path} has no frames")
+    problem = _fps_problem(fields["fps"])
+    if problem is not None:
+        raise TrackError(f"track file {path}: {problem}; delete it and re-run tracking (for a frame folder, set "
+                         "the corpus' fps option)")
     landmark_set = str(fields["landmark_set"])
     expected = sum(MEDIAPIPE_HOLISTIC_PARTS.values()) if landmark_set == "mediapipe_holistic" else kp.shape[1]
     if kp.shape[1] != expected:
