@@ -28,6 +28,25 @@ def test_presets_differ_where_they_should():
     assert tiny.experiment.enabled is False
 
 
+def test_paper_preset_is_the_papers_setup_and_the_default_keeps_its_own():
+    """M3T Sec. 4.1 / App. C / App. 0.D: the three corpora, SMPL-FX, selection on every dev clip of every corpus,
+    epochs that pass every frame, the reduced mBART text vocabulary (396M); params.yaml keeps the embedded run."""
+    default, paper = (load_params(PARAMS, preset=p) for p in ("default", "paper"))
+    assert paper.data.train_corpora == ("how2sign", "csl_daily", "phoenix14t")
+    assert all(c in paper.corpora for c in paper.data.train_corpora)
+    assert paper.body.model == "smplfx"
+    assert paper.tokenizer_train.val_max_frames == 0 and paper.smlm_train.eval_max_clips == 0
+    assert paper.tokenizer_train.windows_per_clip == 0
+    assert paper.smlm.reduce_text_vocab and paper.smlm.text_model_path == paper.smlm.pretrained_path != ""
+    assert (paper.tokenizer_train.lr, paper.tokenizer_train.epochs, paper.tokenizer_train.batch_size,
+            paper.tokenizer_train.warmup_epochs, paper.tokenizer_train.min_lr) == (1e-4, 100, 8, 25, 1e-6)
+    assert (paper.smlm_train.lr, paper.smlm_train.epochs, paper.smlm_train.batch_size, paper.smlm_train.min_lr,
+            paper.smlm_train.translation_prob) == (2e-4, 200, 32, 1e-6, 0.5)
+    assert default.data.train_corpora == ("synthetic",) and default.body.model == "anny"
+    assert (default.tokenizer_train.windows_per_clip, default.tokenizer_train.val_max_frames,
+            default.smlm_train.eval_max_clips, default.smlm.reduce_text_vocab) == (4, 2000, 64, False)
+
+
 def write(tmp_path, data):
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(data))

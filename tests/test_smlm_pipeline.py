@@ -72,7 +72,7 @@ def test_smlm_flow_trains_generates_evaluates_and_tabulates(tokens, shards_dir, 
         for key in ("dtw_jpe_body_m", "dtw_pa_jpe_body_m", "dtw_jpe_hand_m", "dtw_pa_jpe_hand_m", "dtw_vpe_face_m"):
             assert math.isfinite(summary[key]) and summary[key] >= 0, key
         poses = sorted((tmp_path / "gen" / "synthetic" / "pose").glob("*.pose"))
-        assert poses and Pose.read(poses[0].read_bytes()).body.data.shape[2] == 543
+        assert poses and Pose.read(poses[0].read_bytes()).body.data.shape[2] == 576  # pose-format's holistic: 33 + 468 + 2 x 21 + 33 world
     assert 0 <= summary["translation_bleu4"] <= 100
     # every test clip is scored: none cut or unscorable here, and each back-translated by the judge
     assert summary["clips_scored"] == len(test_ids) and summary["clips_unscorable"] == 0

@@ -1,4 +1,5 @@
-"""Tokenizer training on tiny shards: overfitting, exact resume, DDP on gloo, bf16 autocast, and the
+"""Tokenizer training on tiny shards: overfitting, exact resume, DDP on gloo, bf16 autocast, windows that
+cover every clip, validation on every dev clip, codebook statistics of the test split, and the
 train-tokenizers + tokenize flow end to end."""
 from __future__ import annotations
 
@@ -18,8 +19,9 @@ from m3t.runtime import DistributedContext
 from m3t.shards.io import read_shard, write_shard
 from m3t.shards.schema import FittedClip
 from m3t.shards.tokens import read_token_shard
-from m3t.tokenizers.data import clip_sequences, normalisation
+from m3t.tokenizers.data import WindowSampler, clip_sequences, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
+from m3t.tokenizers.pipeline import codebook_report
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
@@ -106,6 +108,61 @@ def test_bf16_autocast_step_on_cpu():
     assert not torch.equal(before, model.encoder[0].weight)
 
 
+def test_windows_per_clip_0_covers_every_frame_of_every_clip_each_epoch():
+    """The paper preset's sampling: ceil(T / window) windows per clip, every frame in one of them."""
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(n, 3)).astype(np.float32) for n in (5, 16, 17, 40, 64, 97)]
+    sampler = WindowSampler(seqs, 16, 4, per_sequence=0, seed=3)
+    windows = sum(-(-len(s) // 16) for s in seqs)
+    assert len(sampler) == -(-windows // 4) == len(list(sampler.epoch(0)))
+    offsets = set()
+    for epoch in range(4):
+        items, starts = sampler.crops(epoch)
+        for i, seq in enumerate(seqs):
+            assert (items == i).sum() == -(-len(seq) // 16)
+            covered = np.zeros(len(seq), dtype=bool)
+            for start in starts[items == i]:
+                assert 0 <= start <= max(len(seq) - 16, 0)
+                covered[start: start + 16] = True
+            assert covered.all(), (epoch, i)
+        offsets.add(tuple(starts[items == 5]))
+    assert len(offsets) > 1, "the tiling moves from epoch to epoch"
+    with pytest.raises(ValueError, match="windows_per_clip"):
+        WindowSampler(seqs, 16, 4, per_sequence=-1)
+
+
+def test_probe_with_max_frames_0_measures_every_dev_clip(shards_dir, body):
+    clips = read_shard(shards_dir / "train.parquet").clips
+    every = ReconstructionProbe(body, "face", clips, max_frames=0)
+    assert len(every.clips) == len(clips) == 4
+    assert len(ReconstructionProbe(body, "face", clips, max_frames=1).clips) == 1  # a cap still caps
+    # over cache_frames the references are posed at each measurement instead of kept: the same numbers
+    uncached = ReconstructionProbe(body, "face", clips, max_frames=0, cache_frames=10)
+    assert all(truth is None for *_, truth in uncached._inputs)
+    seqs = sequences(shards_dir, "face")
+    torch.manual_seed(0)
+    model = MotionTokenizer(TINY_MODEL.vae_config("face", seqs[0].shape[1]))
+    model.set_normalisation(*normalisation(seqs))
+    assert uncached.measure(model) == every.measure(model)
+
+
+def test_codebook_statistics_count_the_test_split_only(shards_dir):
+    """M3T reports utilisation, count SD and the histogram on the test sets (Tab. 3, Tab. A.2, Fig. A.3)."""
+    splits = {s: list(read_shard(shards_dir / f"{s}.parquet").clips) for s in SPLITS}
+    seqs = sequences(shards_dir, "hand")
+    torch.manual_seed(0)
+    model = MotionTokenizer(TINY_MODEL.vae_config("hand", seqs[0].shape[1]))
+    model.set_normalisation(*normalisation(seqs))
+    stats, counts = codebook_report(model.eval(), "hand", splits)
+    steps = {s: sum(2 * -(-c.num_frames // 4) for c in clips) for s, clips in splits.items()}  # two hands
+    assert stats["tokens"] == counts.sum() == steps["test"] < stats["all_splits_tokens"] == sum(steps.values())
+    assert stats["utilisation_pct"] == pytest.approx(100.0 * (counts > 0).mean())
+    assert stats["count_sd"] == pytest.approx(counts.std())
+    empty, _ = codebook_report(model, "hand", {**splits, "test": []})
+    assert empty["tokens"] == 0 and math.isnan(empty["utilisation_pct"]) and math.isnan(empty["count_sd"])
+    assert empty["all_splits_tokens"] == steps["train"] + steps["dev"]
+
+
 def _ddp_worker(rank: int, world: int, rdv: str, shards: str, out: str) -> None:
     import torch.distributed as dist
 
@@ -149,6 +206,11 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
     report = result["tokenizers"]
     assert set(report) == {"body", "hand", "face"}
     assert report["face"]["codebook_size"] == 216 and 0 < report["face"]["utilisation_pct"] <= 100
+    test_frames = [c.num_frames for c in read_shard(shards_dir / "test.parquet").clips]
+    all_frames = [c.num_frames for s in SPLITS for c in read_shard(shards_dir / f"{s}.parquet").clips]
+    for group, streams in (("body", 1), ("hand", 2), ("face", 1)):  # codebook statistics of the test split
+        assert report[group]["tokens"] == streams * sum(-(-t // 4) for t in test_frames)
+        assert report[group]["all_splits_tokens"] == streams * sum(-(-t // 4) for t in all_frames)
     assert all(math.isfinite(report[g]["test_pa_vpe_mm"]) for g in report)
     for group in report:
         assert (tmp_path / "models" / "tokenizers" / f"{group}.pt").exists()

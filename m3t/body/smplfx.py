@@ -61,6 +61,25 @@ def _depth_levels(parents: np.ndarray) -> list[torch.Tensor]:
     return [torch.as_tensor(np.flatnonzero(depth == d)) for d in range(1, int(depth.max()) + 1)]
 
 
+def smplfx_identity_labels(flame_shape_dims: int) -> tuple[str, ...]:
+    """Identity = 10 SMPL-X betas + ``flame_shape_dims`` FLAME shape coefficients (M3T Eq. 1)."""
+    return tuple(f"smplx_beta_{i}" for i in range(10)) + tuple(f"flame_shape_{i:03d}" for i in range(flame_shape_dims))
+
+
+def smplfx_layout(flame_shape_dims: int = 100) -> ModalityLayout:
+    """SMPL-FX's modality layout; fixed by joint and label names, so it needs none of the licensed files (imports
+    of already-fitted parameters write shards in it without building the model)."""
+    return ModalityLayout(
+        modalities=(
+            Modality("body", "rotation6d", BODY_POSE_JOINTS),
+            Modality("left_hand", "rotation6d", hand_joint_names("left"), mirror_of="right_hand"),
+            Modality("right_hand", "rotation6d", hand_joint_names("right"), mirror_of="left_hand"),
+            Modality("face", "scalar", FACE_LABELS),
+        ),
+        identity_labels=smplfx_identity_labels(flame_shape_dims),
+    )
+
+
 class SMPLFXBody(torch.nn.Module):
     """The :class:`m3t.body.protocol.BodyModel` implementation for SMPL-FX (float32, any device)."""
 
@@ -73,16 +92,7 @@ class SMPLFXBody(torch.nn.Module):
         self.joint_names = data.joint_names
         self.joint_parents = tuple(int(p) for p in data.parents)
         self.faces = data.faces
-        self.layout = ModalityLayout(
-            modalities=(
-                Modality("body", "rotation6d", BODY_POSE_JOINTS),
-                Modality("left_hand", "rotation6d", hand_joint_names("left"), mirror_of="right_hand"),
-                Modality("right_hand", "rotation6d", hand_joint_names("right"), mirror_of="left_hand"),
-                Modality("face", "scalar", FACE_LABELS),
-            ),
-            identity_labels=tuple(f"smplx_beta_{i}" for i in range(10)) + tuple(
-                f"flame_shape_{i:03d}" for i in range(flame_shape_dims)),
-        )
+        self.layout = smplfx_layout(flame_shape_dims)
         t = torch.as_tensor
         self.register_buffer("template", t(data.template), persistent=False)  # (V, 3)
         self.register_buffer("identity_dirs", t(data.identity_dirs), persistent=False)  # (N_id, V, 3)

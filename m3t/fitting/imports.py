@@ -55,8 +55,8 @@ import torch
 
 from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import matrix_to_6d
-from m3t.body.smplfx import FACE_LABELS
-from m3t.body.smplfx_build import BODY_JOINTS, BODY_POSE_JOINTS, hand_joint_names
+from m3t.body.smplfx import FACE_LABELS, smplfx_identity_labels, smplfx_layout
+from m3t.body.smplfx_build import BODY_JOINTS, BODY_POSE_JOINTS
 from m3t.corpora.base import adapter_class
 from m3t.corpora.clip import Clip
 from m3t.fitting.report import ClipOutcome
@@ -76,24 +76,6 @@ NO_IDENTITY = ("none",)  # slt arrays carry no identity; a shard row needs a non
 
 
 # ------------------------------------------------------------------------------------------ layouts
-def smplfx_identity_labels(flame_shape_dims: int) -> tuple[str, ...]:
-    return tuple(f"smplx_beta_{i}" for i in range(SMPLX_BETAS)) + tuple(
-        f"flame_shape_{i:03d}" for i in range(flame_shape_dims))
-
-
-def smplfx_layout(flame_shape_dims: int) -> ModalityLayout:
-    """SMPL-FX's layout without its licensed files (equal to ``SMPLFXBody(...).layout``, tested)."""
-    return ModalityLayout(
-        modalities=(
-            Modality("body", "rotation6d", BODY_POSE_JOINTS),
-            Modality("left_hand", "rotation6d", hand_joint_names("left"), mirror_of="right_hand"),
-            Modality("right_hand", "rotation6d", hand_joint_names("right"), mirror_of="left_hand"),
-            Modality("face", "scalar", FACE_LABELS),
-        ),
-        identity_labels=smplfx_identity_labels(flame_shape_dims),
-    )
-
-
 def face_layout(flame_shape_dims: int) -> ModalityLayout:
     """Face-only shards: SMPL-FX's ``face`` stream and identity (what ``extra_face_shards`` reads)."""
     return ModalityLayout((smplfx_layout(flame_shape_dims)["face"],), smplfx_identity_labels(flame_shape_dims))

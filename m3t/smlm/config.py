@@ -15,6 +15,9 @@ class GenerateConfig:
     render_clips: int = 2
     export_pose: bool = True
     backtranslate: bool = True  # evaluate-smlm also scores the generated motion with the back-translation judge
+    # motion metric variant (m3t.metrics.motion): "m3t" = neck-rooted body, every table of the README;
+    # "soke_exact" = SOKE's released evaluation (pelvis-rooted body, PA on all joints; body.model: smplfx only)
+    motion_metric: Literal["m3t", "soke_exact"] = "m3t"
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,7 @@ class SMLMConfig:
     text_vocab_size: int = 1000  # upper bound for the tokenizer trained on the corpus text
     text_model_path: str = ""  # local mBART folder with sentencepiece.bpe.model; "" = train on the corpus
     pretrained_path: str = ""  # local mbart-large-cc25 weights; "" = random init
+    reduce_text_vocab: bool = False  # keep only the pretrained text ids the training text uses (paper: 396M)
 
 
 @dataclass(frozen=True)
@@ -51,7 +55,7 @@ class SMLMTrainConfig:
     translation_prob: float = 0.5
     label_smoothing: float = 0.0
     eval_every: int = 20
-    eval_max_clips: int = 64
+    eval_max_clips: int = 64  # dev clips scored per evaluation, first ones of the first corpus on; 0 = all
     seed: int = 0
     device: str = "auto"
     precision: Literal["fp32", "bf16"] = "fp32"

@@ -13,7 +13,13 @@ text + motion vocabulary, with fused motion inputs and five linear output heads.
 The backbone is ``transformers``' ``MBartModel``: built from :class:`SMLMConfig` (small presets train on a
 CPU), or loaded from a local mbart-large-cc25 checkpoint (``pretrained_path``) and resized to the joint
 vocabulary. Embeddings go through MBart's own (scaled) embedding module, so pretrained weights see the
-inputs they were trained on.
+inputs they were trained on. With a reduced text vocabulary (``smlm.reduce_text_vocab``) the pretrained
+rows are first gathered through :attr:`SMLMDims.pretrained_text_ids`.
+
+The text head is a linear layer of its own (not tied to the embedding, unlike mBART's ``lm_head``), started
+from the pretrained text rows: M3T App. 0.D.2 lists it among the five heads it introduces, and with a text
+vocabulary reduced to the three corpora (~20k ids) an untied head gives the paper's 396M, a tied one 375M
+(``tests/test_smlm_reduced_vocab.py`` counts both).
 
 Axis legend: B batch, L text positions, U motion steps, S = 4 motion streams, D hidden size.
 """
@@ -26,23 +32,27 @@ import torch
 from torch import nn
 
 from m3t.smlm.config import SMLMConfig
-from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
+from m3t.smlm.vocab import MBART_FILES, MBART_HOWTO, MOTION_STREAMS, SignVocabulary
 
 HEADS = ("text", *MOTION_STREAMS)
 
 
 @dataclass(frozen=True)
 class SMLMDims:
-    """The data-dependent sizes: vocabulary, heads and special ids (from :class:`SignVocabulary`)."""
+    """The data-dependent sizes: vocabulary, heads and special ids (from :class:`SignVocabulary`);
+    ``pretrained_text_ids``: the pretrained embedding row of each text id of a reduced vocabulary, () when the
+    text ids are the pretrained ones (used only when weights are loaded from ``pretrained_path``)."""
 
     vocab_size: int
     head_sizes: dict[str, int]
     pad_id: int
     eos_id: int
+    pretrained_text_ids: tuple[int, ...] = ()
 
     @classmethod
     def from_vocabulary(cls, vocab: SignVocabulary) -> SMLMDims:
-        return cls(len(vocab), {h: vocab.head_size(h) for h in HEADS}, vocab.pad_id, vocab.eos_id)
+        return cls(len(vocab), {h: vocab.head_size(h) for h in HEADS}, vocab.pad_id, vocab.eos_id,
+                   tuple(vocab.pretrained_text_ids))
 
 
 @dataclass
@@ -61,7 +71,10 @@ def _mbart_config(cfg: SMLMConfig, dims: SMLMDims):
         dropout=cfg.dropout, attention_dropout=cfg.dropout, activation_dropout=0.0,
         max_position_embeddings=max(cfg.max_text_tokens, cfg.max_motion_tokens) + 4,
         pad_token_id=dims.pad_id, eos_token_id=dims.eos_id, bos_token_id=dims.eos_id,
-        decoder_start_token_id=dims.eos_id, scale_embedding=True, tie_word_embeddings=False)
+        decoder_start_token_id=dims.eos_id, scale_embedding=True,
+        # MBartModel has no output layer: tying only makes the encoder's and decoder's token tables the shared
+        # one, as in mbart-large-cc25 (untied, transformers 5 keeps two unused copies of the whole table)
+        tie_word_embeddings=True)
 
 
 def load_backbone(cfg: SMLMConfig, dims: SMLMDims, backbone_config: dict | None = None) -> nn.Module:
@@ -74,17 +87,37 @@ def load_backbone(cfg: SMLMConfig, dims: SMLMDims, backbone_config: dict | None 
     if not cfg.pretrained_path:
         return MBartModel(_mbart_config(cfg, dims))
     path = Path(cfg.pretrained_path)
-    if not (path / "config.json").exists():
+    weights = [n for n in ("model.safetensors", "pytorch_model.bin") if (path / n).exists()]
+    if not (path / "config.json").exists() or not weights:
+        missing = "config.json" if not (path / "config.json").exists() else "model.safetensors / pytorch_model.bin"
         raise FileNotFoundError(
-            f"no mBART checkpoint in {path} (config.json missing): download facebook/mbart-large-cc25 on a machine "
-            "with internet (huggingface-cli download facebook/mbart-large-cc25 --local-dir <dir>), copy the folder "
-            "here and set smlm.pretrained_path and smlm.text_model_path to it; or set both to '' for a random init")
+            f"no mBART checkpoint in {path} ({missing} missing): expected the folder of facebook/mbart-large-cc25 "
+            f"(the paper preset's models/mbart-large-cc25) with {MBART_FILES}; {MBART_HOWTO}, then set "
+            "smlm.pretrained_path and smlm.text_model_path to it; or set both to '' for a random init")
     backbone = MBartModel.from_pretrained(str(path), local_files_only=True)
     if backbone.config.d_model != cfg.d_model:
         raise ValueError(f"smlm.d_model is {cfg.d_model} but the checkpoint in {path} has {backbone.config.d_model}; "
                          "use the paper preset (d_model 1024) with mbart-large-cc25")
-    backbone.resize_token_embeddings(dims.vocab_size)
+    if dims.pretrained_text_ids:
+        keep_embedding_rows(backbone, dims.pretrained_text_ids, dims.pad_id, path)
+    backbone.resize_token_embeddings(dims.vocab_size)  # prompt and motion rows appended
     return backbone
+
+
+def keep_embedding_rows(backbone: nn.Module, rows: tuple[int, ...], pad_id: int, source: Path | str = "?") -> None:
+    """Replace the (V, D) shared embedding by its rows ``rows`` -> (len(rows), D), in that order."""
+    old = backbone.get_input_embeddings()
+    index = torch.as_tensor(rows, dtype=torch.long)
+    if index.numel() and int(index.max()) >= old.num_embeddings:
+        raise ValueError(f"the reduced text vocabulary uses pretrained id {int(index.max())} but the checkpoint in "
+                         f"{source} has {old.num_embeddings} embedding rows: smlm.text_model_path and "
+                         "smlm.pretrained_path must be the same mBART folder")
+    new = type(old)(len(rows), old.embedding_dim, pad_id, embed_scale=old.embed_scale)
+    with torch.no_grad():
+        new.weight.copy_(old.weight[index.to(old.weight.device)])
+    backbone.set_input_embeddings(new.to(old.weight.device))
+    backbone.config.vocab_size = len(rows)
+    backbone.config.pad_token_id = pad_id
 
 
 class SignMotionLM(nn.Module):

@@ -1,9 +1,11 @@
 """The SMLM runs behind the train-smlm, generate-smlm and evaluate-smlm stages, over the token shards and
 fitted shards of ``data.train_corpora`` (trained jointly; checkpoint selected on all their dev splits).
 
-- :func:`train_and_log`: vocabulary (text tokenizer trained on the train-split text, or the local mBART one;
-  prompts for every language of the train splits; one token per FSQ code), production + translation
-  (``smlm_train.translation_objective``), checkpoint with the lowest mean dev DTW-JPE; writes
+- :func:`train_and_log`: vocabulary (text tokenizer trained on the train-split text, or the local mBART one,
+  ``smlm.reduce_text_vocab``: cut to the ids of the train-split text; prompts for every language of the train
+  splits; one token per FSQ code), production + translation
+  (``smlm_train.translation_objective``), checkpoint with the lowest mean dev DTW-JPE over the dev clips of
+  every training corpus (``smlm_train.eval_max_clips``: the first N of them, 0 = all); writes
   ``<models>/smlm/smlm.pt``, ``metrics.json`` and ``skipped.jsonl``.
 - :func:`run_generate`: every clip of ``smlm_generate.split``: text -> motion tokens (greedy, KV cache) and
   ground-truth motion tokens -> text; writes ``generated.parquet``, ``translations.jsonl``,
@@ -33,6 +35,7 @@ from m3t.backtranslation.pipeline import BackTranslationReport, backtranslate, p
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.runtime import DistributedContext, distributed_context
 from m3t.shards.folders import DataConfig
@@ -79,7 +82,8 @@ def vocabulary_for(model_cfg: SMLMConfig, train: list[TokenShard]) -> SignVocabu
                          f"({sorted(streams)}); rerun `dvc repro tokenize`")
     clips = [c for s in train for c in s.clips]
     return build_vocabulary([c.clip.text for c in clips], [c.clip.language for c in clips],
-                            train[0].info.streams, model_cfg.text_vocab_size, model_cfg.text_model_path)
+                            train[0].info.streams, model_cfg.text_vocab_size, model_cfg.text_model_path,
+                            model_cfg.reduce_text_vocab)
 
 
 def split_examples(shards: list[TokenShard], vocab: SignVocabulary, model_cfg: SMLMConfig,
@@ -162,7 +166,7 @@ def evaluator_for(cfg: GenerateConfig, data: DataConfig, body: BodyModel, device
     cut: list[dict] = []
     examples = split_examples(load_tokens(data, cfg.split), loaded.vocab, loaded.model.cfg, skipped, cut)
     evaluator = SMLMEvaluator(body, tokenizers, loaded.vocab, examples, references(data, cfg.split),
-                              batch_size=cfg.batch_size)
+                              batch_size=cfg.batch_size, motion=MotionMetricsConfig(mode=cfg.motion_metric))
     return GenerationSetup(loaded, evaluator, info, skipped, cut)
 
 

@@ -12,6 +12,13 @@ with ``sentencepiece.bpe.model`` loaded through ``transformers``, ids kept as th
 SentencePiece unigram model trained on the corpus text, stored inside the vocabulary itself so a
 checkpoint rebuilds it from the file alone.
 
+``reduce_text_vocab`` keeps only the pretrained ids that the training text uses (plus pad / bos / eos /
+unk): mbart-large-cc25's 250,027 text ids would otherwise hold ~512M of the model's parameters in two
+1024-wide tables, where M3T App. 0.D.2 counts 396M in all. The kept ids (reduced id ``i`` = pretrained id
+``kept[i]``, ascending, so the specials 0-3 keep their ids) are stored in the vocabulary: encoding maps
+pretrained ids to reduced ones (a piece the training text never used becomes ``<unk>``), decoding maps back,
+and the model gathers its pretrained embedding rows through the same list.
+
 Each output head predicts only its own vocabulary (local ids): the text head the T text ids, a motion
 head the C_m codes of its stream plus one end-of-sequence class (local id C_m).
 """
@@ -33,6 +40,11 @@ STREAM_TAGS = {"body": "b", "left_hand": "lh", "right_hand": "rh", "face": "f"}
 PROMPT_MODALITIES = ("TXT", "B", "LH", "RH", "F")
 STREAM_PROMPT = {"body": "B", "left_hand": "LH", "right_hand": "RH", "face": "F"}
 _MOTION_RE = re.compile(r"^<(b|lh|rh|f)_(\d+)>$")
+# what a local mbart-large-cc25 folder (smlm.text_model_path / smlm.pretrained_path) must hold
+MBART_FILES = ("config.json, sentencepiece.bpe.model (the tokenizer; tokenizer.json too if present) and the "
+               "weights (model.safetensors or pytorch_model.bin)")
+MBART_HOWTO = ("download it on a machine with internet (huggingface-cli download facebook/mbart-large-cc25 "
+               "--local-dir models/mbart-large-cc25) and copy the folder here")
 
 
 class VocabularyError(ValueError):
@@ -88,8 +100,9 @@ class PretrainedMBartText:
         path = Path(path)
         if not path.is_dir() or not any(path.glob("sentencepiece*.model")) and not (path / "tokenizer.json").exists():
             raise VocabularyError(
-                f"no mBART tokenizer in {path}: expected the checkpoint folder of facebook/mbart-large-cc25 with "
-                "sentencepiece.bpe.model (or tokenizer.json); download it on a machine with internet and copy it here, "
+                f"no mBART tokenizer in {path} (sentencepiece.bpe.model or tokenizer.json missing): expected the "
+                f"folder of facebook/mbart-large-cc25 (the paper preset's models/mbart-large-cc25) with {MBART_FILES}; "
+                f"{MBART_HOWTO}, "
                 "or set smlm.text_model_path to '' to train a tokenizer on the corpus text")
         from transformers import AutoTokenizer
 
@@ -113,11 +126,58 @@ class PretrainedMBartText:
         return self._tok.convert_ids_to_tokens(int(i))
 
 
+class ReducedText:
+    """A pretrained tokenizer restricted to ``kept`` (ascending pretrained ids, the four specials included):
+    reduced id ``i`` is pretrained id ``kept[i]``."""
+
+    def __init__(self, base: PretrainedMBartText, kept: Sequence[int]):
+        self.base, self.kept = base, tuple(int(i) for i in kept)
+        if list(self.kept) != sorted(set(self.kept)) or not self.kept or self.kept[0] < 0 or self.kept[-1] >= base.size:
+            source = getattr(base, "path", "?")
+            raise VocabularyError(
+                f"the reduced text vocabulary must list ascending, distinct ids of the tokenizer in {source} "
+                f"(0 .. {base.size - 1}); got {len(self.kept)} ids from {self.kept[:1]} to {self.kept[-1:]}: the "
+                "checkpoint was made with another mBART tokenizer")
+        self._reduced = {old: new for new, old in enumerate(self.kept)}
+        specials = {"pad": base.pad_id, "bos": base.bos_id, "eos": base.eos_id, "unk": base.unk_id}
+        lost = [name for name, i in specials.items() if i not in self._reduced]
+        if lost:
+            raise VocabularyError(f"the reduced text vocabulary lacks the special token(s) {lost}")
+        self.pad_id, self.bos_id, self.eos_id, self.unk_id = (self._reduced[i] for i in specials.values())
+        self.model_proto = base.model_proto
+
+    @classmethod
+    def from_texts(cls, base: PretrainedMBartText, texts: Iterable[str]) -> ReducedText:
+        """The specials and every id that ``texts`` encode to."""
+        used = {base.pad_id, base.bos_id, base.eos_id, base.unk_id}
+        count = 0
+        for text in texts:
+            if text and text.strip():
+                used.update(base.encode(text))
+                count += 1
+        if not count:
+            raise VocabularyError("cannot reduce the text vocabulary: the training corpus has no non-empty text")
+        return cls(base, sorted(used))
+
+    @property
+    def size(self) -> int:
+        return len(self.kept)
+
+    def encode(self, text: str) -> list[int]:
+        return [self._reduced.get(i, self.unk_id) for i in self.base.encode(text)]
+
+    def decode(self, ids: Sequence[int]) -> str:
+        return self.base.decode([self.kept[int(i)] for i in ids if 0 <= int(i) < self.size])
+
+    def piece(self, i: int) -> str:
+        return self.base.piece(self.kept[int(i)])
+
+
 @dataclass(frozen=True)
 class SignVocabulary:
     """Text tokenizer + prompts + motion tokens; ``codebooks`` maps stream -> FSQ codebook size."""
 
-    text: SentencePieceText | PretrainedMBartText
+    text: SentencePieceText | PretrainedMBartText | ReducedText
     languages: tuple[str, ...]
     codebooks: dict[str, int]
     text_model_path: str = ""
@@ -144,6 +204,11 @@ class SignVocabulary:
     @property
     def prompt_offset(self) -> int:
         return self.text.size
+
+    @property
+    def pretrained_text_ids(self) -> tuple[int, ...]:
+        """The pretrained embedding row of each text id when the vocabulary is reduced; () = the ids themselves."""
+        return self.text.kept if isinstance(self.text, ReducedText) else ()
 
     def __len__(self) -> int:
         last = MOTION_STREAMS[-1]
@@ -228,18 +293,36 @@ class SignVocabulary:
 
     # ---- persistence -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {"text_model": self.text.model_proto, "text_model_path": self.text_model_path,
+        # a pretrained tokenizer is read from its folder (no model bytes): None, since torch's weights_only
+        # loading refuses an empty bytes object
+        data = {"text_model": self.text.model_proto or None, "text_model_path": self.text_model_path,
                 "languages": list(self.languages), "codebooks": dict(self.codebooks)}
+        if isinstance(self.text, ReducedText):  # only then: an unreduced vocabulary keeps its old run key
+            data["text_ids"] = list(self.text.kept)
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> SignVocabulary:
         path = data.get("text_model_path", "")
         text = PretrainedMBartText(path) if path else SentencePieceText(data["text_model"])
+        if data.get("text_ids"):
+            text = ReducedText(text, data["text_ids"])
         return cls(text, tuple(data["languages"]), {k: int(v) for k, v in data["codebooks"].items()}, path)
 
 
-def build_vocabulary(texts: Iterable[str], languages: Iterable[str], codebooks: dict[str, int],
-                     text_vocab_size: int, text_model_path: str = "") -> SignVocabulary:
-    """The pretrained mBART tokenizer when ``text_model_path`` is set, else one trained on ``texts``."""
-    text = PretrainedMBartText(text_model_path) if text_model_path else SentencePieceText.train(texts, text_vocab_size)
+def build_vocabulary(texts: Iterable[str], languages: Iterable[str], codebooks: dict[str, int], text_vocab_size: int,
+                     text_model_path: str = "", reduce_text_vocab: bool = False) -> SignVocabulary:
+    """The pretrained mBART tokenizer when ``text_model_path`` is set (``reduce_text_vocab``: only the ids
+    ``texts`` use), else one trained on ``texts``."""
+    if reduce_text_vocab and not text_model_path:
+        raise VocabularyError("smlm.reduce_text_vocab keeps the pretrained mBART ids that the corpus text uses; "
+                              "set smlm.text_model_path to the local mbart-large-cc25 folder, or reduce_text_vocab "
+                              "to false (a tokenizer trained on the corpus text is already corpus-sized)")
+    if text_model_path:
+        texts = list(texts)
+        text = PretrainedMBartText(text_model_path)
+        if reduce_text_vocab:
+            text = ReducedText.from_texts(text, texts)
+    else:
+        text = SentencePieceText.train(texts, text_vocab_size)
     return SignVocabulary(text, tuple(sorted(set(languages))), dict(codebooks), text_model_path)

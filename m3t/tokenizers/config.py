@@ -73,9 +73,9 @@ class TokenizerTrainConfig:
     min_lr: float = 1e-6
     batch_size: int = 16
     window: int = 64
-    windows_per_clip: int = 4
+    windows_per_clip: int = 4  # random windows per clip and epoch; 0 = ceil(frames / window), covering the clip
     eval_every: int = 5
-    val_max_frames: int = 2000
+    val_max_frames: int = 2000  # dev frames measured per evaluation (and test frames in the report); 0 = all
     seed: int = 0
     device: str = "auto"
     precision: Literal["fp32", "bf16"] = "fp32"

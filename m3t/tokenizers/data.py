@@ -3,9 +3,12 @@
 M3T trains one tokenizer per modality group (Sec. 3.2): ``body``, ``hand`` (one shared tokenizer: right
 hands as they are, left hands mirrored into right hands with the single mirroring function of
 :mod:`m3t.body.rotations`) and ``face``. Each group reads its streams from the fitted shards; every
-stream of a clip becomes one training sequence, cropped to random windows of ``window`` frames per epoch.
-A clip shorter than a window is padded by repeating its last frame and the padding is masked out of
-the loss; a clip with non-finite values is rejected with its id.
+stream of a clip becomes one training sequence, cropped to random windows of ``window`` frames per epoch:
+a fixed number per clip, or (``windows_per_clip: 0``) ``ceil(T / window)`` windows tiling the clip from a
+random offset, so that an epoch passes every frame of every clip (the paper preset: App. 0.D.1 counts
+epochs but states no windows, and SOKE's tokenizer epochs pass each whole clip once). A clip shorter than a
+window is padded by repeating its last frame and the padding is masked out of the loss; a clip with
+non-finite values is rejected with its id.
 
 Axis legend: T frames, D the group's per-frame dim, B batch, W window length.
 """
@@ -108,7 +111,9 @@ def normalisation(sequences: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.
 
 
 class WindowSampler:
-    """Random ``window``-frame crops of each sequence, ``per_sequence`` times per epoch, in batches.
+    """``window``-frame crops of each sequence in batches: ``per_sequence`` random crops per sequence and
+    epoch, or (``per_sequence = 0``) ``ceil(T / window)`` crops tiling it from a random offset (every frame
+    in at least one crop).
 
     Everything random is a function of ``(seed, epoch)``, so an epoch can be replayed exactly (resume).
     With ``world_size > 1`` rank ``r`` gets every ``world_size``-th item of the epoch's permutation.
@@ -118,22 +123,41 @@ class WindowSampler:
                  seed: int = 0, rank: int = 0, world_size: int = 1):
         if not sequences:
             raise ValueError("no training sequences: the shards hold no clips for this group")
-        if window < 1 or batch_size < 1 or per_sequence < 1:
-            raise ValueError(f"window ({window}), batch_size ({batch_size}) and windows_per_clip ({per_sequence}) must be >= 1")
+        if window < 1 or batch_size < 1 or per_sequence < 0:
+            raise ValueError(f"window ({window}) and batch_size ({batch_size}) must be >= 1 and windows_per_clip "
+                             f"({per_sequence}) >= 0 (0 = as many as cover each clip)")
         self.sequences = list(sequences)
         self.window, self.batch_size, self.per_sequence = window, batch_size, per_sequence
         self.seed, self.rank, self.world_size = seed, rank, world_size
+        # crops per sequence and epoch
+        self.counts = (np.full(len(self.sequences), per_sequence) if per_sequence else
+                       np.array([-(-len(s) // window) for s in self.sequences]))
 
     def __len__(self) -> int:
-        items = -(-len(self.sequences) * self.per_sequence // self.world_size)
+        items = -(-int(self.counts.sum()) // self.world_size)
         return -(-items // self.batch_size)
+
+    def crops(self, epoch: int) -> tuple[np.ndarray, np.ndarray]:
+        """The epoch's crops in batch order: (N,) sequence index and (N,) start frame."""
+        rng = np.random.default_rng([self.seed, epoch])
+        if self.per_sequence:
+            items = np.tile(np.arange(len(self.sequences)), self.per_sequence)
+            items = items[rng.permutation(len(items))]
+            fractions = rng.random(len(items))
+            lengths = np.array([len(self.sequences[i]) for i in items])
+            return items, (fractions * np.maximum(lengths - self.window + 1, 1)).astype(np.int64)
+        items, starts = [], []
+        for i, (seq, n) in enumerate(zip(self.sequences, self.counts)):
+            # n windows span n * window >= T frames; a random shift within the slack, the ends clamped
+            shift = int(rng.integers(0, n * self.window - len(seq) + 1))
+            items.append(np.full(n, i))
+            starts.append(np.clip(np.arange(n) * self.window - shift, 0, max(len(seq) - self.window, 0)))
+        order = rng.permutation(int(self.counts.sum()))
+        return np.concatenate(items)[order], np.concatenate(starts)[order]
 
     def epoch(self, epoch: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """Yields (x (B, W, D), mask (B, W) bool) batches."""
-        rng = np.random.default_rng([self.seed, epoch])
-        items = np.tile(np.arange(len(self.sequences)), self.per_sequence)
-        items = items[rng.permutation(len(items))]
-        starts = rng.random(len(items))
+        items, starts = self.crops(epoch)
         mine = np.arange(self.rank, len(items), self.world_size)
         if len(mine) < -(-len(items) // self.world_size):  # equal step counts on every rank (DDP)
             mine = np.append(mine, mine[: -(-len(items) // self.world_size) - len(mine)])
@@ -141,7 +165,7 @@ class WindowSampler:
             xs, masks = [], []
             for k in mine[b: b + self.batch_size]:
                 seq = self.sequences[items[k]]
-                start = int(starts[k] * max(len(seq) - self.window + 1, 1))
+                start = int(starts[k])
                 crop = seq[start: start + self.window]
                 mask = np.zeros(self.window, dtype=bool)
                 mask[: len(crop)] = True

@@ -2,10 +2,12 @@
 modality group -> checkpoints, codebook statistics, token histograms and reconstruction GIFs, logged to MLflow.
 
 For each group of ``tokenizer_train.groups`` (``body``, ``hand``, ``face``): train on the train splits of all
-training corpora (+ face-only shards for ``face``), select by validation vertex error on their dev splits,
-then tokenise every split with the selected checkpoint to measure codebook utilisation / token-count SD and
-test-split VPE / PA-VPE (the Tab. 3 columns). Writes ``<models>/tokenizers/<group>.pt``, ``metrics.json``,
-``plots/`` and ``rejected.jsonl`` (clips that could not be used, with reasons).
+training corpora (+ face-only shards for ``face``), select by validation vertex error on their dev splits
+(``val_max_frames`` of them, in corpus order; 0 = all), then tokenise with the selected checkpoint to measure
+codebook utilisation / token-count SD / the token histogram on the test splits of all training corpora, as
+M3T reports them (Tab. 3, Tab. A.2, Fig. A.3 "across all test sets"; the same over train + dev + test under
+``all_splits_*``), and test-split VPE / PA-VPE (the Tab. 3 columns). Writes ``<models>/tokenizers/<group>.pt``,
+``metrics.json``, ``plots/`` and ``rejected.jsonl`` (clips that could not be used, with reasons).
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from m3t.tokenizers.data import (
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import TrainResult, train_tokenizer
+from m3t.tokenizers.vae import MotionTokenizer
 
 
 def usable_sequences(group: str, clips: list[FittedClip], rejected: list[dict]) -> list[np.ndarray]:
@@ -55,17 +58,31 @@ def face_only_clips(paths: tuple[str, ...]) -> list[FittedClip]:
     return clips
 
 
+def codebook_report(model: MotionTokenizer, group: str, splits: dict[str, list[FittedClip]]
+                    ) -> tuple[dict[str, float], np.ndarray]:
+    """Codebook statistics of the test split(s) (``utilisation_pct``, ``count_sd``, ``perplexity``, ``tokens``)
+    and of every split (the same names prefixed ``all_splits_``), with the test token counts (K,). Without a
+    test clip the test statistics are NaN (``tokens`` 0): nothing to measure, rather than a 0 % utilisation."""
+    counts = {split: token_counts([encode_clip(model, to_canonical(np.asarray(c.params[s.modality]), s))
+                                   for c in clips for s in GROUPS[group]], model.codebook_size)
+              for split, clips in splits.items()}
+    test = counts.get("test", np.zeros(model.codebook_size, dtype=np.int64))
+    stats = codebook_stats(test)
+    if not test.sum():
+        stats = {k: (0.0 if k == "tokens" else float("nan")) for k in stats}
+    every = codebook_stats(np.sum(list(counts.values()), axis=0) if counts else test)
+    return {**stats, **{f"all_splits_{k}": v for k, v in every.items()}}, test
+
+
 def group_report(group: str, checkpoint: Path, splits: dict[str, list[FittedClip]], body: BodyModel,
                  plots_dir: Path, max_test_frames: int) -> dict[str, float]:
-    """Codebook statistics over every split and test-split vertex errors of the selected checkpoint."""
+    """Codebook statistics (test splits; all splits under ``all_splits_*``) and test-split vertex errors of
+    the selected checkpoint (``max_test_frames`` of them, 0 = all)."""
     from m3t.render.reconstruction import render_reconstruction
 
     model = load_tokenizer(checkpoint).model
-    indices = [encode_clip(model, to_canonical(np.asarray(c.params[s.modality]), s))
-               for clips in splits.values() for c in clips for s in GROUPS[group]]
-    counts = token_counts(indices, model.codebook_size)
-    stats = codebook_stats(counts)
-    plot_token_histogram(counts, f"{group} ({model.cfg.quantizer}, {model.codebook_size} codes)",
+    stats, counts = codebook_report(model, group, splits)
+    plot_token_histogram(counts, f"{group} ({model.cfg.quantizer}, {model.codebook_size} codes), test",
                          plots_dir / f"tokens_{group}.png")
     test = ReconstructionProbe(body, group, splits["test"], max_frames=max_test_frames).measure(model)
     report = {**stats, **{f"test_{k}": v for k, v in test.items()}, "codebook_size": float(model.codebook_size)}
