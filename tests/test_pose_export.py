@@ -17,7 +17,6 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-import torch
 
 from m3t.atomic import atomic_path, copy_file, write_bytes
 from m3t.render.posefile import export_pose, front_view, holistic_points
@@ -51,7 +50,6 @@ def _motion(body, frames: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def exported(body, tmp_path_factory):
     """(path, metres (T, K, 3), validity (K,), names) of a 3-frame Anny clip exported on a 640 x 480 canvas."""
-    torch.set_num_threads(1)
     params, identity = _motion(body), body.default_identity().numpy()
     path = tmp_path_factory.mktemp("pose") / "clip.pose"
     with umask(0o022):
