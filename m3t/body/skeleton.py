@@ -165,21 +165,19 @@ class SkeletonGraph:
         return cls(str(raw["name"]), tuple(raw["joints"]), tuple(tuple(e) for e in raw["edges"]))
 
 
-def _build(name: str, joints: list[str], named_edges: list[tuple[str, str]]) -> SkeletonGraph:
+def _build(name: str, joints: list[str], named_edges: list[tuple[str, str]], face_points: bool) -> SkeletonGraph:
+    """A body region (``joints``, ``named_edges``) completed with both hands (MediaPipe's HAND_CONNECTIONS) and,
+    with ``face_points``, the face chains rooted at the body's nose (the graph is then named ``<name>+face``)."""
+    joints = joints + [f"{side}:{p}" for side in HANDS for p in HAND_POINTS]
+    named_edges = named_edges + [(f"{side}:{HAND_POINTS[a]}", f"{side}:{HAND_POINTS[b]}")
+                                 for side in HANDS for a, b in HAND_CONNECTIONS]
+    if face_points:
+        name, joints = f"{name}+face", joints + [f"face:{i}" for i, _ in FACE_POINTS]
+        named_edges = (named_edges + [(f"face:{a}", f"face:{b}") for a, b in FACE_CONNECTIONS]
+                       + [("body:nose", f"face:{FACE_ROOT}")])
     position = {j: i for i, j in enumerate(joints)}
     edges = sorted({(min(position[a], position[b]), max(position[a], position[b])) for a, b in named_edges})
     return SkeletonGraph(name, tuple(joints), tuple(edges))
-
-
-def _hands() -> tuple[list[str], list[tuple[str, str]]]:
-    joints = [f"{side}:{p}" for side in HANDS for p in HAND_POINTS]
-    edges = [(f"{side}:{HAND_POINTS[a]}", f"{side}:{HAND_POINTS[b]}") for side in HANDS for a, b in HAND_CONNECTIONS]
-    return joints, edges
-
-
-def _face() -> tuple[list[str], list[tuple[str, str]]]:
-    return ([f"face:{i}" for i, _ in FACE_POINTS],
-            [(f"face:{a}", f"face:{b}") for a, b in FACE_CONNECTIONS] + [("body:nose", f"face:{FACE_ROOT}")])
 
 
 def body_graph(face_points: bool = False) -> SkeletonGraph:
@@ -198,12 +196,7 @@ def body_graph(face_points: bool = False) -> SkeletonGraph:
         edges += [(f"body:{side}_shoulder", f"body:{side}_elbow"), (f"body:{side}_elbow", f"body:{side}_wrist"),
                   ("body:nose", f"body:{side}_eye"), (f"body:{side}_eye", f"body:{side}_ear"),
                   (f"body:{side}_wrist", f"{side}_hand:wrist")]
-    hand_joints, hand_edges = _hands()
-    joints, edges = joints + hand_joints, edges + hand_edges
-    if face_points:
-        face_joints, face_edges = _face()
-        joints, edges = joints + face_joints, edges + face_edges
-    return _build("body+face" if face_points else "body", joints, edges)
+    return _build("body", joints, edges, face_points)
 
 
 def holistic_graph(face_points: bool = False) -> SkeletonGraph:
@@ -227,12 +220,7 @@ def holistic_graph(face_points: bool = False) -> SkeletonGraph:
     edges += [("body:neck", "body:left_shoulder"), ("body:neck", "body:right_shoulder"), ("body:neck", "body:nose"),
               ("body:nose", "body:mouth_left"), ("body:nose", "body:mouth_right"),
               ("body:left_wrist", "left_hand:wrist"), ("body:right_wrist", "right_hand:wrist")]
-    hand_joints, hand_edges = _hands()
-    joints, edges = joints + hand_joints, edges + hand_edges
-    if face_points:
-        face_joints, face_edges = _face()
-        joints, edges = joints + face_joints, edges + face_edges
-    return _build("holistic+face" if face_points else "holistic", joints, edges)
+    return _build("holistic", joints, edges, face_points)
 
 
 def graph_for(kind: str, face_points: bool = False) -> SkeletonGraph:

@@ -23,24 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+from m3t.body.metric_sets import HAND_POINTS as METRIC_HAND_POINTS
+from m3t.body.skeleton import POSE_LANDMARKS
 from m3t.corpora.base import CorpusError
 from m3t.corpora.posefile import PoseData, pose_data, read_pose
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 
-# MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order), as pose-format writes them.
-POSE_POINTS = (
-    "NOSE", "LEFT_EYE_INNER", "LEFT_EYE", "LEFT_EYE_OUTER", "RIGHT_EYE_INNER", "RIGHT_EYE", "RIGHT_EYE_OUTER",
-    "LEFT_EAR", "RIGHT_EAR", "MOUTH_LEFT", "MOUTH_RIGHT", "LEFT_SHOULDER", "RIGHT_SHOULDER", "LEFT_ELBOW",
-    "RIGHT_ELBOW", "LEFT_WRIST", "RIGHT_WRIST", "LEFT_PINKY", "RIGHT_PINKY", "LEFT_INDEX", "RIGHT_INDEX",
-    "LEFT_THUMB", "RIGHT_THUMB", "LEFT_HIP", "RIGHT_HIP", "LEFT_KNEE", "RIGHT_KNEE", "LEFT_ANKLE", "RIGHT_ANKLE",
-    "LEFT_HEEL", "RIGHT_HEEL", "LEFT_FOOT_INDEX", "RIGHT_FOOT_INDEX",
-)
-HAND_POINTS = ("WRIST",) + tuple(
-    f"{finger}_{joint}" for finger, joints in (("THUMB", ("CMC", "MCP", "IP", "TIP")),
-                                               ("INDEX_FINGER", ("MCP", "PIP", "DIP", "TIP")),
-                                               ("MIDDLE_FINGER", ("MCP", "PIP", "DIP", "TIP")),
-                                               ("RING_FINGER", ("MCP", "PIP", "DIP", "TIP")),
-                                               ("PINKY", ("MCP", "PIP", "DIP", "TIP"))) for joint in joints)
+# MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order) as pose-format writes them:
+# the body layer's lists, upper-case.
+POSE_POINTS = tuple(name.upper() for name in POSE_LANDMARKS)
+HAND_POINTS = tuple(name.upper() for name in METRIC_HAND_POINTS)
 FACE_POINTS = tuple(str(i) for i in range(MEDIAPIPE_HOLISTIC_PARTS["face"]))
 COMPONENTS = {  # track part -> (.pose component, point names in the track's order)
     "pose": ("POSE_LANDMARKS", POSE_POINTS),
