@@ -20,6 +20,7 @@ import pytest
 
 from m3t.atomic import atomic_path, copy_file, write_bytes
 from m3t.render.posefile import export_pose, front_view, holistic_points
+from test_skeleton_graph import jittered_motion
 
 WIDTH, HEIGHT, FPS = 640, 480, 25.0
 COUNTS = [("POSE_LANDMARKS", 33), ("FACE_LANDMARKS", 468), ("LEFT_HAND_LANDMARKS", 21),
@@ -35,22 +36,10 @@ def umask(mask: int):
         os.umask(old)
 
 
-def _motion(body, frames: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
-    """Rest pose plus small random rotations / facial actions (within bounds)."""
-    rng = np.random.default_rng(seed)
-    rest = {k: v.numpy().astype(np.float64) for k, v in body.rest_params(frames).items()}
-    out = {}
-    for m in body.layout.modalities:
-        noise = rng.normal(0.0, 0.05, rest[m.name].shape)
-        value = rest[m.name] + (np.abs(noise) if m.kind == "scalar" else noise)
-        out[m.name] = np.clip(value, *m.bounds) if m.bounds is not None else value
-    return out
-
-
 @pytest.fixture(scope="module")
 def exported(body, tmp_path_factory):
     """(path, metres (T, K, 3), validity (K,), names) of a 3-frame Anny clip exported on a 640 x 480 canvas."""
-    params, identity = _motion(body), body.default_identity().numpy()
+    params, identity = jittered_motion(body), body.default_identity().numpy()
     path = tmp_path_factory.mktemp("pose") / "clip.pose"
     with umask(0o022):
         export_pose(path, body, params, identity, FPS, width=WIDTH, height=HEIGHT)
@@ -246,7 +235,7 @@ def test_export_file_mode_and_unchanged_rewrite(exported, body):
     path = exported[0]
     assert stat.S_IMODE(path.stat().st_mode) == 0o644
     before = path.stat().st_mtime_ns
-    params, identity = _motion(body), body.default_identity().numpy()
+    params, identity = jittered_motion(body), body.default_identity().numpy()
     export_pose(path, body, params, identity, FPS, width=WIDTH, height=HEIGHT)
     assert path.stat().st_mtime_ns == before  # identical bytes: left alone (DVC sees no change)
 
@@ -278,7 +267,7 @@ def test_smplfx_export_without_hips(fx, tmp_path):
     """SMPL-FX has no leg joints and 51 face points: world landmarks centre on the shoulders, the rest is masked."""
     from pose_format.utils.generic import pose_hide_legs
 
-    params, identity = _motion(fx, frames=2), fx.default_identity().numpy()
+    params, identity = jittered_motion(fx, frames=2), fx.default_identity().numpy()
     path = export_pose(tmp_path / "fx.pose", fx, params, identity, FPS)
     pose = _read(path)
     header, conf = pose.header, pose.body.confidence[:, 0]

@@ -139,7 +139,8 @@ def test_graph_round_trips_through_a_dict():
         SkeletonGraph("bad", ("torso:neck",), ())
 
 
-def _motion(body, frames: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
+def jittered_motion(body, frames: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
+    """Rest pose plus small random rotations / facial actions (within bounds), ``frames`` frames."""
     rng = np.random.default_rng(seed)
     rest = {k: v.numpy().astype(np.float64) for k, v in body.rest_params(frames).items()}
     out = {}
@@ -153,7 +154,7 @@ def _motion(body, frames: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
 def test_body_points_are_the_scored_metric_points(body):
     from m3t.metrics.scorer import MotionScorer
 
-    params, identity = _motion(body), body.default_identity().numpy()
+    params, identity = jittered_motion(body), body.default_identity().numpy()
     graph = body_graph(face_points=True)
     points = body_points(body, params, identity, graph)
     assert points.shape == (3, len(graph.joints), 3) and points.dtype == np.float64 and np.isfinite(points).all()
@@ -175,7 +176,7 @@ def test_face_subset_exists_on_smplfx_too(fx):
     """The face points are iBUG-68 landmarks, the only face points SMPL-FX's correspondence has."""
     from m3t.metrics.scorer import MotionScorer
 
-    params, identity = _motion(fx, frames=2), fx.default_identity().numpy()
+    params, identity = jittered_motion(fx, frames=2), fx.default_identity().numpy()
     graph = body_graph(face_points=True)
     got = regions(body_points(fx, params, identity, graph), graph)
     assert all(np.isfinite(v).all() for v in got.values())
