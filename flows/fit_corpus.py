@@ -1,7 +1,8 @@
 """Prefect flow ``fit-corpus``: one task over the corpus-fitting engine (:func:`m3t.fitting.corpus.fit_and_log`),
-the same orchestration path as the DVC stage: clips are fitted on an executor (``fit_corpus.workers``
-processes by default; pass any ``concurrent.futures.Executor``-like runner, e.g. a Dask client's
-``get_executor()``), each clip's outcome is logged as it completes, shards and reports are consolidated.
+the same orchestration path as the DVC stage: clips are fitted on the executor of ``fit_corpus.executor``
+(:func:`m3t.fitting.cluster.open_executor`: ``fit_corpus.workers`` local processes, or a Dask cluster at
+``fit_corpus.dask_address`` or started for the run; ``executor=`` takes any ``concurrent.futures.Executor``-like
+runner instead), each clip's outcome is logged as it completes, shards and reports are consolidated.
 
 Per-clip failures are quarantined by the engine, not retried; the engine resumes from its per-clip cache, so
 the task is retried once on a failure of the run itself (a worker killed, a disk hiccup).

@@ -239,7 +239,7 @@ def test_refinement_around_the_fused_initialisation_beats_the_rest_pose(fx, trut
     fused = initialise_from_trackers(fx, find_tracker_outputs(media), T)
     track = simulate_track("clip", truth.params, torch.as_tensor(truth.identity), front_camera_fx(), 25.0, fx,
                            SimulatedTrackerConfig(seed=3))
-    cfg = FittingConfig(iterations=40, camera_iterations=40)
+    cfg = FittingConfig(solver="adam", iterations=40, camera_iterations=40)  # the measurements below
     from_fused = refine(track, fused, fx, cfg)
     from_rest = fit_track(dataclasses.replace(track, init=None), fx, cfg)
     assert isinstance(from_fused, FitResult) and type(from_fused) is type(from_rest)

@@ -17,7 +17,7 @@ from m3t.config import load_params
 from m3t.experiment import to_dict
 from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
 from m3t.shards.io import read_shard
-from m3t.fitting.corpus import FitContext, fit_one, run_fit_corpus
+from m3t.fitting.corpus import FitContext, fit_batch, plan_batches, run_fit_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,7 +84,7 @@ def test_killed_run_resumes_without_refitting(corpus_params, body, tmp_path):
 
 
 def test_any_executor_runs_the_engine_with_picklable_jobs(corpus_params, body, tmp_path):
-    """The engine takes any Executor-like runner and sends it only the job (configs) and the clip."""
+    """The engine takes any Executor-like runner and sends it only the job (configs) and a batch of clips."""
     from concurrent.futures import ThreadPoolExecutor
 
     job = corpus_params.fit_job("synthetic")
@@ -100,7 +100,8 @@ def test_any_executor_runs_the_engine_with_picklable_jobs(corpus_params, body, t
 
     with Recording(2) as pool:
         report = run_fit_corpus(job, pool, clips=clips, progress=False)
-    assert [fn for fn, _ in sent] == [fit_one, fit_one]
+    assert [fn for fn, _ in sent] == [fit_batch] * len(plan_batches(clips, job.run.batch_clips))
+    assert sorted(c.id for _, (_, batch) in sent for c in batch) == sorted(c.id for c in clips)
     assert all(pickle.loads(pickle.dumps(args)) == args for _, args in sent)
     assert sorted(o.clip_id for o in report.outcomes) == sorted(c.id for c in clips)
     assert {o.status for o in report.outcomes} == {"fitted"}

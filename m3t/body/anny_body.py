@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,25 @@ def _load_anny(cache_dir: Path):
             os.environ.setdefault("ANNY_CACHE_DIR", key)
             _MODELS[key] = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref").to(torch.float32)
         return _MODELS[key]
+
+
+@dataclass(frozen=True)
+class AnnyKeypoints(KeypointIndex):
+    """A keypoint set with its slices of Anny's buffers gathered once (not at every forward).
+
+    Skinning weights are dense over the few bones that move these points (``skin_bones``, J'), so that
+    skinning is one (K x J') by (J' x 12 B) product instead of a gather of W transforms per point.
+    """
+
+    rest: torch.Tensor  # (K, 3) template points (0 for joint points)
+    pheno_bs: torch.Tensor  # (N, K, 3)
+    face_bs: torch.Tensor  # (52, K, 3)
+    skin_bones: torch.Tensor  # (J',) long, positions in ``bones``
+    skin_weights: torch.Tensor  # (K, J')
+    bones: torch.Tensor  # (J'',) long: the bones these points hang on and their ancestors, root first
+    chain: tuple  # Anny's kinematic chain over ``bones``
+    streams: dict  # rotation stream -> (its bones' columns in the stream, their positions in ``bones``)
+    joint_pos: torch.Tensor  # (K,) long: joint points' positions in ``bones`` (0 for vertex points)
 
 
 class AnnyBody(torch.nn.Module):
@@ -181,19 +201,72 @@ class AnnyBody(torch.nn.Module):
         vertices = self._skin(rest, transforms, self.skin_bones, self.skin_weights)
         return BodyOutput(joints=poses[..., :3, 3], vertices=vertices)
 
-    def keypoint_set(self, correspondence: Correspondence) -> KeypointIndex:
-        return KeypointIndex.from_correspondence(correspondence, self.template.device)
+    def keypoint_set(self, correspondence: Correspondence) -> AnnyKeypoints:
+        return self._gathered(KeypointIndex.from_correspondence(correspondence, self.template.device))
+
+    def _gathered(self, keypoints: KeypointIndex) -> AnnyKeypoints:
+        vidx = keypoints.vertex_index
+        weights = self.skin_weights[vidx] * keypoints.is_vertex[:, None]  # (K, W), joint points weigh nothing
+        dense = torch.zeros(len(vidx), len(self.joint_names), dtype=weights.dtype, device=weights.device)
+        dense.scatter_add_(1, self.skin_bones[vidx], weights)
+        used = torch.nonzero(dense.abs().sum(0) > 0).flatten().tolist()
+        joints = keypoints.joint_index[~keypoints.is_vertex & keypoints.valid].tolist()
+        # Forward kinematics runs over the bones that move a point and their ancestors only.
+        needed = {0}
+        for bone in used + joints:
+            while bone > 0 and bone not in needed:
+                needed.add(bone)
+                bone = self.joint_parents[bone]
+        bones = sorted(needed)  # parents precede children in Anny's bone order
+        pos = {b: i for i, b in enumerate(bones)}
+        assert all(self.joint_parents[b] in pos for b in bones[1:]), "Anny's bones must list parents first"
+        from anny.utils.kinematics import get_kinematic_chain
+
+        levels, indices = get_kinematic_chain([-1] + [pos[self.joint_parents[b]] for b in bones[1:]])
+        streams = {}
+        for name, stream in self._stream_bones.items():
+            cols = [c for c, b in enumerate(stream.tolist()) if b in pos]
+            streams[name] = (torch.tensor(cols, dtype=torch.long), torch.tensor([pos[stream[c].item()] for c in cols],
+                                                                                 dtype=torch.long))
+        device = self.template.device
+        joint_pos = torch.tensor([pos.get(int(j), 0) for j in keypoints.joint_index], dtype=torch.long, device=device)
+        return AnnyKeypoints(keypoints.is_vertex, vidx, keypoints.joint_index, keypoints.valid,
+                             rest=self.template[vidx], pheno_bs=self.pheno_bs[:, vidx].contiguous(),
+                             face_bs=self.face_bs[:, vidx].contiguous(),
+                             skin_bones=torch.tensor([pos[b] for b in used] or [0], dtype=torch.long, device=device),
+                             skin_weights=dense[:, used or [0]].contiguous(),
+                             bones=torch.tensor(bones, dtype=torch.long, device=device),
+                             chain=(levels, indices.to(device)), streams=streams, joint_pos=joint_pos)
+
+    def _keypoint_bones(self, params: Params, rest_bones: torch.Tensor,
+                        kp: AnnyKeypoints) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`_bone_transforms` over ``kp.bones`` only: (B, J'', 4, 4) skinning transforms and poses."""
+        from anny.utils import kinematics
+
+        batch = self.layout.check(params)
+        delta = self.base_delta[kp.bones].expand(batch, -1, -1, -1).clone()
+        for name, (cols, at) in kp.streams.items():
+            if len(cols):
+                rot = sixd_to_matrix(params[name].reshape(batch, -1, 6)[:, cols.to(delta.device)])
+                delta[:, at.to(delta.device), :3, :3] = rot
+        rest = rest_bones[:, kp.bones].expand(batch, -1, -1, -1)
+        reference = self._anny.reference_bone_orientations
+        return kinematics.forward_kinematic(kp.chain, rest, delta, "local-ref",
+                                            None if reference is None else reference[kp.bones])
 
     def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex) -> torch.Tensor:
+        kp = keypoints if isinstance(keypoints, AnnyKeypoints) else self._gathered(keypoints)
         coeffs = self._identity_coeffs(identity)
-        transforms, poses = self._bone_transforms(params, self._rest_bones(coeffs))
-        vidx = keypoints.vertex_index
-        rest = self.template[vidx] + torch.einsum("bn,nkc->bkc", coeffs, self.pheno_bs[:, vidx])
-        rest = rest + torch.einsum("bf,fkc->bkc", params["face"], self.face_bs[:, vidx])  # (B, K, 3)
-        skinned = self._skin(rest, transforms, self.skin_bones[vidx], self.skin_weights[vidx])
-        joints = poses[:, keypoints.joint_index, :3, 3]  # (B, K, 3)
-        out = torch.where(keypoints.is_vertex[None, :, None], skinned, joints)
-        return out * keypoints.valid[None, :, None]
+        transforms, poses = self._keypoint_bones(params, self._rest_bones(coeffs), kp)
+        rest = kp.rest + torch.einsum("bn,nkc->bkc", coeffs, kp.pheno_bs)
+        rest = rest + torch.einsum("bf,fkc->bkc", params["face"], kp.face_bs)  # (B, K, 3)
+        # blended 3 x 4 transforms per point: (K, J') x (B, J', 12)
+        blended = torch.einsum("kj,bjn->bkn", kp.skin_weights, transforms[:, kp.skin_bones, :3, :].flatten(2))
+        blended = blended.unflatten(-1, (3, 4))  # (B, K, 3, 4)
+        skinned = (blended[..., :3] @ rest.expand(blended.shape[0], -1, -1)[..., None])[..., 0] + blended[..., 3]
+        joints = poses[:, kp.joint_pos, :3, 3]  # (B, K, 3)
+        out = torch.where(kp.is_vertex[None, :, None], skinned, joints)
+        return out * kp.valid[None, :, None]
 
     def correspondence(self, landmark_set: str) -> Correspondence:
         path = DATA_DIR / f"anny_{landmark_set}.json"

@@ -19,8 +19,8 @@ from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 class FittingConfig:
     """params.yaml ``fitting``: M3T App. C, Eq. A.3, L = w_kp L_kp + w_acc L_acc + w_reg L_reg."""
 
-    iterations: int = 200
-    camera_iterations: int = 100
+    iterations: int = 150  # objective evaluations of the joint stage (lbfgs: at most; adam: steps)
+    camera_iterations: int = 20  # of the camera-only stage
     lr: float = 0.02
     w_kp: float = 1.0
     w_acc: float = 0.5
@@ -29,6 +29,10 @@ class FittingConfig:
     focal_guess: float = 1.2  # focal length in units of max(width, height) when the track has no intrinsics
     camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
     device: str = "cpu"
+    solver: Literal["lbfgs", "adam"] = "lbfgs"  # adam: the first solver (it used 200 + 100 steps)
+    lbfgs_round: int = 10  # iterations between convergence tests
+    lbfgs_history: int = 100
+    tolerance: float = 1e-3  # stop once a round improved the loss by less than this (relative)
 
 
 @dataclass(frozen=True)
@@ -44,9 +48,16 @@ class FitCorpusConfig:
 
     default_corpus: Literal[CORPORA] = "synthetic"  # the corpus of `--corpus` when none is named
     cache_dir: str = ".cache/fit"  # tracks and per-clip fits, content-addressed (shared by every corpus)
-    workers: int = 2  # processes of the default executor; 1 = in this process
+    workers: int = 2  # processes of the local executor (1 = in this process), or of the LocalCluster of dask
     max_clips: int = 0  # 0 = every clip
+    batch_clips: int = 16  # a signer's clips fitted together with one identity, at most this many (1 = per clip)
+    batch_frames: int = 2048  # frames per fit at most; a batch's further chunks hold the identity of its first
     render_clips: int = 2  # fitted clips pictured in the MLflow run
+    # where clips are fitted (m3t.fitting.cluster): local = `workers` processes here; dask = a Dask cluster, on
+    # dask_address ("tcp://scheduler:8786") or, when it is "", a LocalCluster of `workers` processes for the run.
+    # Every worker must see cache_dir and the corpus at the same paths. Shards do not depend on either key.
+    executor: Literal["local", "dask"] = "local"
+    dask_address: str = ""
 
 
 @dataclass(frozen=True)

@@ -3,10 +3,11 @@ parameters -> one part file per clip -> shards (one per split) and the data-qual
 
 One orchestration path for every caller: the DVC stage ``fit-corpus``, the Prefect flow ``fit-corpus`` and
 tests all call :func:`run_fit_corpus` with a :class:`FitJob` (everything a worker needs, picklable: configs
-only, never a built model) and any ``concurrent.futures.Executor``-like runner (``submit`` returning
-futures that ``concurrent.futures.as_completed`` accepts): a process pool (the default for
-``fit_corpus.workers > 1``), a thread pool, or a Dask ``Client.get_executor()``. Each worker process builds
-its body model once (:func:`worker_context`) and reuses it for every clip it is sent.
+only, never a built model) and, by default, the executor of ``fit_corpus.executor``
+(:func:`m3t.fitting.cluster.open_executor`: local processes or a Dask cluster), or any
+``concurrent.futures.Executor``-like runner passed in. The unit of work is a signer batch (:func:`plan_batches`,
+:func:`process_batch`: a signer's clips fitted together with one identity). Each worker process builds its body
+model once (:func:`worker_context`) and reuses it for every batch it is sent.
 
 Per clip (:func:`process_clip`): the track is content-addressed by its media and tracker settings, the fit
 by the track's bytes, the fitting config, the body model and (when the clip carries them) the external
@@ -47,7 +48,7 @@ from m3t.corpora.base import CorpusAdapter, Listing, open_corpus
 from m3t.corpora.clip import Clip
 from m3t.fitting.config import FitCorpusConfig, FitJob  # noqa: F401 - FitCorpusConfig: the engine's config
 from m3t.fitting.evaluate import ground_truth_errors, procrustes_error_mm
-from m3t.fitting.fit import fit_track
+from m3t.fitting.fit import FitResult, fit_track, fit_tracks
 from m3t.fitting.fusion import (
     FusionUnsupported,
     describe,
@@ -226,6 +227,12 @@ def fit_clip(clip: Clip, track_path: Path, outputs: TrackerOutputs | None, key: 
              ctx: FitContext) -> tuple[FittedClip, dict[str, Any]]:
     track = load_track(track_path)
     result, init = _fit(clip, track, outputs, ctx)
+    return fitted_record(clip, track, result, key, ctx), init
+
+
+def fitted_record(clip: Clip, track: Track, result: FitResult, key: str, ctx: FitContext) -> FittedClip:
+    """The part-file record of a fit: its parameters and metrics (per landmark part; against the ground truth
+    for synthetic clips)."""
     metrics = dict(result.metrics)
     metrics.update(part_reprojection_px(ctx.body, result.params, result.identity, result.camera, track))
     if media_kind(clip) == "synthetic":
@@ -237,9 +244,8 @@ def fit_clip(clip: Clip, track_path: Path, outputs: TrackerOutputs | None, key: 
                 truth_joints = joints_for(ctx.body, gt_params, gt_identity)
                 init_joints = joints_for(ctx.body, track.init, ctx.body.default_identity().numpy())
             metrics["init_pa_joint_mm"] = procrustes_error_mm(init_joints, truth_joints)
-    fitted = FittedClip(clip=clip, key=key, params=result.params, identity=result.identity, camera=result.camera,
-                        metrics=metrics, body_model=ctx.body.name)
-    return fitted, init
+    return FittedClip(clip=clip, key=key, params=result.params, identity=result.identity, camera=result.camera,
+                      metrics=metrics, body_model=ctx.body.name)
 
 
 def part_path(clip: Clip, key: str, ctx: FitContext) -> Path:
@@ -298,45 +304,166 @@ def process_clip(clip: Clip, ctx: FitContext) -> ClipOutcome:
                            group=group, file=clip.media, **seen)
 
 
+def _init_source(clip: Clip, outputs: TrackerOutputs | None) -> str:
+    if media_kind(clip) == "synthetic":
+        return "simulated tracker initialisation"
+    return "rest pose: fusion.use_external is off" if outputs is None else NO_EXTERNAL
+
+
+def fit_signer_batch(tracks: list[Track], ctx: FitContext) -> list[FitResult]:
+    """One signer's tracks fitted with one identity: in chunks of at most ``fit_corpus.batch_frames`` frames,
+    the first chunk fitting the identity and the others holding it."""
+    chunks: list[list[int]] = [[]]
+    frames = 0
+    for i, track in enumerate(tracks):
+        if chunks[-1] and frames + track.num_frames > ctx.job.run.batch_frames > 0:
+            chunks.append([])
+            frames = 0
+        chunks[-1].append(i)
+        frames += track.num_frames
+    results: list[FitResult | None] = [None] * len(tracks)
+    identity = None
+    for chunk in chunks:
+        for i, result in zip(chunk, fit_tracks([tracks[i] for i in chunk], ctx.body, ctx.job.fitting,
+                                               identity=identity)):
+            results[i] = result
+        identity = results[chunk[0]].identity
+    return results  # type: ignore[return-value]
+
+
+def process_batch(clips: list[Clip], ctx: FitContext) -> list[ClipOutcome]:
+    """Several clips of one signer (:func:`plan_batches`): those fitted from their 2D track alone (synthetic
+    clips, real clips without external tracker outputs) are fitted together with one shared identity
+    (:func:`fit_signer_batch`); imports, clips with external outputs (their own fused identity) and clips that
+    fail to track go through :func:`process_clip` one by one. A batch's part files are addressed by the tracks
+    of all its members; when the batch fit fails, its clips are fitted one by one. Never raises for a bad clip."""
+    if len(clips) == 1:
+        return [process_clip(clips[0], ctx)]
+    outcomes: list[ClipOutcome] = []
+    members: list[tuple[Clip, Path, TrackerOutputs | None, float]] = []
+    for clip in clips:
+        start = time.perf_counter()
+        try:
+            if media_kind(clip) in IMPORTERS:
+                outcomes.append(process_clip(clip, ctx))
+                continue
+            track_path = track_clip(clip, ctx)
+            outputs = external_outputs(clip, ctx)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception:  # noqa: BLE001 - process_clip quarantines it with its reason
+            outcomes.append(process_clip(clip, ctx))
+            continue
+        if outputs is not None and outputs.any():
+            outcomes.append(process_clip(clip, ctx))
+        else:
+            members.append((clip, track_path, outputs, start))
+    if len(members) <= 1:
+        return outcomes + [process_clip(m[0], ctx) for m in members]
+    key = _digest(KEY_VERSION, "signer batch", [_file_digest(m[1]) for m in members], ctx.job.fitting,
+                  ctx.body_key, ctx.job.run.batch_frames)
+    tracks = [load_track(m[1]) for m in members]
+    fitted: list[FitResult] = []
+
+    def make(i: int) -> tuple[FittedClip, dict[str, Any]]:
+        if not fitted:
+            fitted.extend(fit_signer_batch(tracks, ctx))
+        clip, _, outputs, _ = members[i]
+        init = {"init_source": _init_source(clip, outputs),
+                "identity": f"one per batch: {len(members)} clips of signer {clip.signer!r}"}
+        return fitted_record(clip, tracks[i], fitted[i], key, ctx), init
+
+    try:
+        for i, (clip, _, _, start) in enumerate(members):
+            seen = {"coverage": track_coverage(tracks[i]), "track_frames": tracks[i].num_frames}
+            outcomes.append(_part_outcome(clip, part_path(clip, key, ctx), lambda i=i: make(i), ctx.body.layout,
+                                          start, seen))
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception:  # noqa: BLE001 - one clip may spoil the batch: fit them one by one instead
+        done = {o.clip_id for o in outcomes}
+        outcomes += [process_clip(m[0], ctx) for m in members if m[0].id not in done]
+    return outcomes
+
+
+def plan_batches(clips: list[Clip], batch_clips: int) -> list[list[Clip]]:
+    """Clips grouped by signer (in listing order), at most ``batch_clips`` per batch (1 = a batch per clip)."""
+    if batch_clips <= 1:
+        return [[c] for c in clips]
+    by_signer: dict[str, list[Clip]] = {}
+    for clip in clips:
+        by_signer.setdefault(clip.signer, []).append(clip)
+    return [group[i:i + batch_clips] for group in by_signer.values() for i in range(0, len(group), batch_clips)]
+
+
 def fit_one(job: FitJob, clip: Clip) -> ClipOutcome:
-    """The unit sent to an executor: a picklable job and one clip, processed with this process' context."""
+    """One clip processed with this process' context (picklable arguments)."""
     return process_clip(clip, worker_context(job))
 
 
+def fit_batch(job: FitJob, clips: list[Clip]) -> list[ClipOutcome]:
+    """The unit sent to an executor: a picklable job and one batch of :func:`plan_batches`, processed with this
+    process' context."""
+    return process_batch(clips, worker_context(job))
+
+
 # ------------------------------------------------------------------------------------ the whole run
-def _single_thread() -> None:
-    torch.set_num_threads(1)  # one process per core; intra-op threads would oversubscribe
-
-
-def default_executor(workers: int) -> Executor | None:
-    """``workers`` spawned processes (None for one: clips then run in this process)."""
-    if workers <= 1:
-        return None
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_single_thread)
+POLL_SECONDS = 10.0  # while no clip finishes, how often an executor is asked whether its cluster is still there
 
 
 def _outcomes(job: FitJob, clips: list[Clip], executor: Executor | None,
               ctx: FitContext | None) -> Iterator[ClipOutcome]:
-    """Outcomes in completion order."""
+    """Outcomes in completion order, batch by batch (:func:`plan_batches`). An executor with ``capacity()``
+    (Dask) gets at most that many batches at a time; one with ``check()`` is asked, while no batch finishes,
+    whether its cluster is still there (it raises when not). The clips of a batch whose worker died are
+    quarantined and the others go on (:mod:`m3t.fitting.cluster`)."""
+    batches = plan_batches(clips, job.run.batch_clips)
     if executor is None:
         ctx = ctx or worker_context(job)
-        yield from (process_clip(c, ctx) for c in clips)
+        for batch in batches:
+            yield from process_batch(batch, ctx)
         return
-    from concurrent.futures import as_completed
+    from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, wait
     from concurrent.futures.process import BrokenProcessPool
+    from itertools import islice
 
-    futures = [executor.submit(fit_one, job, c) for c in clips]
+    from m3t.fitting.cluster import worker_died
+
+    capacity = getattr(executor, "capacity", lambda: len(batches))
+    check = getattr(executor, "check", lambda: None)
+    todo, left = iter(batches), len(batches)
+    running: dict[Future, list[Clip]] = {}
     try:
-        for future in as_completed(futures):
-            yield future.result()
+        while True:
+            if left:
+                sent = list(islice(todo, max(capacity() - len(running), 0)))
+                left -= len(sent)
+                running.update((executor.submit(fit_batch, job, b), b) for b in sent)
+            if not running:
+                return
+            done, _ = wait(running, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
+            if not done:
+                check()
+            for future in done:
+                batch = running.pop(future)
+                try:
+                    outcomes = future.result()
+                except CancelledError as exc:  # Dask cancels every task when its scheduler connection drops
+                    check()
+                    raise RuntimeError(f"clip {batch[0].id}: the executor cancelled its task; finished clips are "
+                                       "cached, rerun to resume") from exc
+                except Exception as exc:
+                    if not worker_died(exc):
+                        raise
+                    outcomes = [ClipOutcome(clip.id, clip.split, "quarantined", group="worker died", file=clip.media,
+                                            reason=f"worker died while fitting this clip: {type(exc).__name__}: "
+                                                   f"{exc} (the next run retries it)") for clip in batch]
+                yield from outcomes
     except BrokenProcessPool as exc:
         raise RuntimeError("a fit-corpus worker process died (out of memory or killed); finished clips are "
                            "cached, rerun to resume") from exc
     finally:
-        for future in futures:
+        for future in running:
             future.cancel()
 
 
@@ -348,10 +475,15 @@ def run_fit_corpus(
     on_outcome: Callable[[ClipOutcome], None] | None = None,
     ctx: FitContext | None = None,
 ) -> FitCorpusReport:
-    """List the corpus (unless ``clips`` are given), process every clip on ``executor`` (default: a pool of
-    ``fit_corpus.workers`` processes, or this process for one worker) and consolidate the shards; the rows
-    the listing refused are reported as quarantined. ``ctx`` (in-process runs only) reuses a built model."""
+    """List the corpus (unless ``clips`` are given), process every clip on ``executor`` (default: the one of
+    ``fit_corpus.executor``, :func:`m3t.fitting.cluster.open_executor`: a pool of ``fit_corpus.workers``
+    processes, this process for one worker, or a Dask cluster) and consolidate the shards; the rows the listing
+    refused are reported as quarantined. ``ctx`` (in-process runs only) reuses a built model."""
+    from contextlib import ExitStack
+
     from tqdm.auto import tqdm
+
+    from m3t.fitting.cluster import open_executor
 
     start = time.perf_counter()
     outcomes: list[ClipOutcome] = []
@@ -365,7 +497,8 @@ def run_fit_corpus(
         layout, clips, refused = plan_import(kind, (ctx or worker_context(job)).import_settings, clips)
         outcomes += refused
     own = executor is None and ctx is None
-    executor = default_executor(job.run.workers) if own else executor
+    opened = ExitStack()  # the run's own executor, shut down when the run ends or stops
+    executor = opened.enter_context(open_executor(job.run)) if own else executor
     try:
         with tqdm(total=len(clips), desc=f"fit-corpus {job.corpus}", unit="clip", disable=not progress) as bar:
             for outcome in _outcomes(job, clips, executor, ctx):
@@ -376,8 +509,7 @@ def run_fit_corpus(
                 if on_outcome is not None:
                     on_outcome(outcome)
     finally:
-        if own and executor is not None:
-            executor.shutdown(cancel_futures=True)
+        opened.close()
     layout = layout or (ctx or worker_context(job)).body.layout
     return consolidate(outcomes, layout, job.shards_dir, job.corpus, time.perf_counter() - start)
 

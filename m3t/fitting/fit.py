@@ -1,4 +1,4 @@
-"""Per-clip refinement of body-model parameters against 2D keypoints (M3T Appendix C, Eq. A.3).
+"""Refinement of body-model parameters against 2D keypoints (M3T Appendix C, Eq. A.3), one clip or many.
 
     L_fit = w_kp L_kp + w_acc L_acc + w_reg L_reg,   (w_kp, w_acc, w_reg) = (1.0, 0.5, 0.01)
 
@@ -8,11 +8,21 @@
 - ``L_acc``: squared acceleration of the model keypoints in cm / frame^2 (temporal smoothness).
 - ``L_reg``: squared distance of every parameter to the tracker initialisation.
 
-All frames of a clip are optimised together (one batch) with Adam, after a camera-only stage that
-places the body in the image using the torso and head points. The body root stays at the origin; the
-camera's extrinsics carry the global placement. Only the sparse keypoint forward is evaluated.
+:func:`fit_tracks` fits several clips of one signer in one batch: their frames are packed along the batch
+axis, each clip has its own camera and its own terms (the acceleration never spans two clips), the objective
+is the sum of the clips' objectives, and the identity (the body shape) is one, shared by every clip: the
+paper's static per-signer shape. :func:`fit_track` is the one-clip case.
 
-Axis legend: T frames, K landmarks, D per-frame modality dim.
+Two solvers (``fitting.solver``), both after a camera-only stage that places the body in the image using the
+torso and head points:
+
+- ``lbfgs`` (default): L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
+- ``adam``: the first solver, a fixed number of Adam steps with a cosine learning-rate decay.
+
+The body root stays at the origin; the camera's extrinsics carry the global placement. Only the sparse
+keypoint forward is evaluated.
+
+Axis legend: C clips, B frames of all clips, T frames of one clip, K landmarks, D per-frame modality dim.
 """
 from __future__ import annotations
 
@@ -23,7 +33,7 @@ import torch
 
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
-from m3t.camera import look_at, project
+from m3t.camera import look_at
 from m3t.fitting.config import FittingConfig
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
@@ -73,6 +83,128 @@ def acceleration_loss(points: torch.Tensor) -> torch.Tensor:
     return (acc ** 2).sum(-1).mean()
 
 
+def _project(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
+             intrinsics: torch.Tensor) -> torch.Tensor:
+    """:func:`m3t.camera.project` with a camera per frame: points (B, K, 3), rotation (B, 3, 3), translation and
+    intrinsics (B, 3) / (B, 4) -> pixels (B, K, 2)."""
+    cam = points @ rotation.transpose(-1, -2) + translation[:, None]
+    uv = cam[..., :2] / cam[..., 2:3].clamp(min=1e-3)
+    return uv * intrinsics[:, None, :2] + intrinsics[:, None, 2:]
+
+
+class _Pack:
+    """Several clips' frames along one batch axis, and the per-clip reductions of the objective's terms."""
+
+    def __init__(self, lengths: list[int], device: torch.device):
+        self.lengths = lengths
+        self.clip = torch.repeat_interleave(torch.arange(len(lengths), device=device),
+                                            torch.as_tensor(lengths, device=device))  # (B,) clip of each frame
+        starts = np.cumsum([0] + lengths[:-1])
+        self.slices = [slice(int(a), int(a) + n) for a, n in zip(starts, lengths)]
+        # acceleration triplets (t - 1, t, t + 1) inside one clip
+        mid = torch.as_tensor([t for sl in self.slices for t in range(sl.start + 1, sl.stop - 1)], dtype=torch.long,
+                              device=device)
+        self.mid = mid
+        self.mid_clip = self.clip[mid]
+        self.triplets = torch.as_tensor([max(n - 2, 0) for n in lengths], dtype=torch.float32, device=device)
+        self.frames = torch.as_tensor(lengths, dtype=torch.float32, device=device)
+
+    def per_clip(self, values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Sum (N, ...) rows into (C, ...) by clip ``index`` (N,)."""
+        out = values.new_zeros((len(self.lengths), *values.shape[1:]))
+        return out.index_add(0, index, values)
+
+
+class _Terms:
+    """The objective's three terms per clip, (C,) each; for one clip exactly :func:`reprojection_loss`,
+    :func:`acceleration_loss` and the mean over streams of the mean squared distance to the initialisation."""
+
+    def __init__(self, pack: _Pack, conf: torch.Tensor, parts: list[slice], valid: torch.Tensor):
+        self.pack = pack
+        self.conf = conf
+        self.parts = parts
+        self.valid = torch.nonzero(valid).flatten()
+        part_conf = torch.stack([conf[:, p].sum(1) for p in parts], 1)  # (B, parts)
+        norm = pack.per_clip(part_conf, pack.clip)  # (C, parts)
+        self.has_part = norm > 0
+        self.norm = torch.where(self.has_part, norm, torch.ones_like(norm))
+        self.parts_per_clip = self.has_part.sum(1).clamp(min=1)
+
+    def reprojection(self, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        sq = ((uv - target) ** 2).sum(-1) * self.conf  # (B, K)
+        part_sq = torch.stack([sq[:, p].sum(1) for p in self.parts], 1)  # (B, parts)
+        per_part = self.pack.per_clip(part_sq, self.pack.clip) / self.norm
+        return (per_part * self.has_part).sum(1) / self.parts_per_clip
+
+    def acceleration(self, points: torch.Tensor) -> torch.Tensor:
+        pack = self.pack
+        if pack.mid.numel() == 0:
+            return points.new_zeros(len(pack.lengths))
+        p = points[:, self.valid]
+        acc = (p[pack.mid + 1] - 2 * p[pack.mid] + p[pack.mid - 1]) * 100.0
+        per_frame = (acc ** 2).sum(-1).mean(-1)  # (triplets,)
+        return pack.per_clip(per_frame, pack.mid_clip) / pack.triplets.clamp(min=1)
+
+    def regulariser(self, params: dict[str, torch.Tensor], init: dict[str, torch.Tensor]) -> torch.Tensor:
+        pack = self.pack
+        per_stream = [pack.per_clip(((params[k] - init[k]) ** 2).mean(1), pack.clip) / pack.frames for k in params]
+        return torch.stack(per_stream, 1).mean(1)
+
+
+def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage: str, lr: float,
+              curve: list[float], project_bounds=None) -> None:
+    """Minimise ``loss_fn()`` over ``variables`` in place, appending every objective evaluation to ``curve``.
+
+    The budget is ``iterations`` objective (and gradient) evaluations, ``camera_iterations`` for the camera
+    stage. ``adam``: that many Adam steps at ``lr`` with a cosine decay to 5 %, the bounds projected after each
+    step. ``lbfgs``: L-BFGS with a strong-Wolfe line search (``lr`` unused), in rounds of ``lbfgs_round``
+    iterations, at most that many evaluations; it stops early once a round improved the loss by less than
+    ``tolerance`` (relative). Bounded variables enter ``loss_fn`` clamped and are projected onto their bounds
+    after every round.
+    """
+    iterations = cfg.camera_iterations if stage == "camera" else cfg.iterations
+    if cfg.solver == "adam":
+        opt = torch.optim.Adam(variables, lr=lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, iterations), eta_min=lr * 0.05)
+        for _ in range(iterations):
+            opt.zero_grad()
+            loss = loss_fn()
+            loss.backward()
+            opt.step()
+            sched.step()
+            if project_bounds is not None:
+                project_bounds()
+            curve.append(float(loss.detach()))
+        return
+    if cfg.solver != "lbfgs":
+        raise ValueError(f"fitting.solver is {cfg.solver!r}; expected 'lbfgs' or 'adam'")
+    budget = iterations
+    if budget <= 0:
+        return
+    opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.lbfgs_round, history_size=cfg.lbfgs_history,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+    evaluations: list[float] = []
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        evaluations.append(float(loss.detach()))
+        return loss
+
+    previous = float("inf")
+    while len(evaluations) < budget:
+        opt.param_groups[0]["max_eval"] = min(budget - len(evaluations), cfg.lbfgs_round * 5 // 4)
+        opt.step(closure)
+        if project_bounds is not None:
+            project_bounds()
+        best = min(evaluations)
+        if previous - best <= cfg.tolerance * abs(best):
+            break
+        previous = best
+    curve.extend(evaluations)
+
+
 def fit_track(
     track: Track,
     body: BodyModel,
@@ -81,47 +213,84 @@ def fit_track(
 ) -> FitResult:
     """Fit body-model parameters to one clip's 2D track, starting from the track's 3D initialisation (or
     the rest pose when the tracker gave none)."""
+    return fit_tracks([track], body, cfg, correspondence)[0]
+
+
+def fit_tracks(
+    tracks: list[Track],
+    body: BodyModel,
+    cfg: FittingConfig,
+    correspondence: Correspondence | None = None,
+    identity: np.ndarray | None = None,
+) -> list[FitResult]:
+    """Fit several clips of one signer in one batch, with one shared identity; one :class:`FitResult` per track
+    (all carrying that identity). Each clip starts from its track's 3D initialisation (or the rest pose).
+    ``identity``: the signer's identity when already known (held fixed then), else it starts from the body
+    model's default and is fitted when ``fitting.fit_identity``."""
+    if not tracks:
+        return []
+    sets = {t.landmark_set for t in tracks}
+    if len(sets) > 1:
+        raise ValueError(f"tracks of one batch must share a landmark set; got "
+                         f"{[t.landmark_set for t in tracks]} (one per track)")
     device = choose_device(cfg.device)
     if device.type != "cpu":
         body = body.to(device)  # type: ignore[attr-defined]
     layout = body.layout
-    T = track.num_frames
-    correspondence = correspondence or body.correspondence(track.landmark_set)
+    pack = _Pack([t.num_frames for t in tracks], device)
+    correspondence = correspondence or body.correspondence(tracks[0].landmark_set)
     kpset = body.keypoint_set(correspondence)
-    target = torch.as_tensor(np.nan_to_num(track.keypoints, nan=0.0), device=device)
     valid = torch.as_tensor(correspondence.valid, device=device)
-    conf = torch.as_tensor(track.confidence, device=device) * valid
-    if float(conf.sum()) == 0:
-        raise ValueError("the track has no visible landmark with a body-model correspondence in any frame")
-    intrinsics = _intrinsics(track, cfg).to(device)
-    parts = list(landmark_slices(track.landmark_set).values())
+    target = torch.cat([torch.as_tensor(np.nan_to_num(t.keypoints, nan=0.0)) for t in tracks]).to(device)
+    conf = torch.cat([torch.as_tensor(t.confidence) for t in tracks]).to(device) * valid
+    empty = [str(i) for i, sl in enumerate(pack.slices) if float(conf[sl].sum()) == 0]
+    if empty:
+        what = "the track has" if len(tracks) == 1 else f"track(s) {', '.join(empty)} of the batch have"
+        raise ValueError(f"{what} no visible landmark with a body-model correspondence in any frame")
+    intrinsics = torch.stack([_intrinsics(t, cfg) for t in tracks]).to(device)  # (C, 4)
+    parts = list(landmark_slices(tracks[0].landmark_set).values())
+    terms = _Terms(pack, conf, parts, valid)
 
-    if track.init is not None:
-        init = {k: torch.as_tensor(track.init[k], device=device) for k in layout.names}
-        layout.check(init)
-    else:
-        init = {k: v.to(device) for k, v in body.rest_params(T).items()}
+    inits = []
+    for t in tracks:
+        if t.init is not None:
+            one = {k: torch.as_tensor(t.init[k]) for k in layout.names}
+            layout.check(one)
+        else:
+            one = {k: v.cpu() for k, v in body.rest_params(t.num_frames).items()}
+        inits.append(one)
+    init = {k: torch.cat([one[k] for one in inits]).to(device) for k in layout.names}
     rot_streams = [m.name for m in layout.modalities if m.kind == "rotation6d"]
     scalar_streams = [m.name for m in layout.modalities if m.kind == "scalar"]
     variables = {k: init[k].clone().requires_grad_(True) for k in rot_streams}
-    # Bounded streams (Anny's facial actions and phenotypes live in [0, 1]) are optimised directly and
-    # projected back after each step (a sigmoid would freeze parameters that start at 0).
+    # Bounded streams (Anny's facial actions and phenotypes live in [0, 1]) are optimised directly, enter the
+    # objective clamped and are projected back after each step or round (a sigmoid would freeze parameters
+    # that start at 0).
     variables.update({k: init[k].clone().requires_grad_(True) for k in scalar_streams})
+    known = identity is not None
     identity0 = body.default_identity().to(device)
-    identity = identity0.clone().requires_grad_(cfg.fit_identity)
+    if known:
+        identity0 = torch.as_tensor(identity, dtype=identity0.dtype, device=device)
+    identity = identity0.clone().requires_grad_(cfg.fit_identity and not known)
 
     rot0, trans0 = _init_extrinsics(body, identity0.cpu(), cfg)
-    cam_rot = matrix_to_6d(rot0).to(device).requires_grad_(True)
-    cam_trans = trans0.to(device).requires_grad_(True)
+    cam_rot = matrix_to_6d(rot0).to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 6)
+    cam_trans = trans0.to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 3)
+    frame_intrinsics = intrinsics[pack.clip]
 
     def current_params() -> dict[str, torch.Tensor]:
         out = {k: variables[k] for k in rot_streams}
-        out.update({k: variables[k] for k in scalar_streams})
+        out.update({k: variables[k].clamp(*layout[k].bounds) if layout[k].bounds is not None else variables[k]
+                    for k in scalar_streams})
         return out
 
+    def uv_of(points: torch.Tensor) -> torch.Tensor:
+        return _project(points, sixd_to_matrix(cam_rot)[pack.clip], cam_trans[pack.clip], frame_intrinsics)
+
     def keypoints_uv(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        points = body.forward_keypoints(params, identity, kpset)  # (T, K, 3)
-        return points, project(points, sixd_to_matrix(cam_rot), cam_trans, intrinsics)
+        ident = identity if layout.identity_bounds is None else identity.clamp(*layout.identity_bounds)
+        points = body.forward_keypoints(params, ident, kpset)  # (B, K, 3)
+        return points, uv_of(points)
 
     curve: list[float] = []
     # Stage 1: camera only, against the torso and head (arms and hands are far from the rest pose).
@@ -129,55 +298,49 @@ def fit_track(
     torso_conf[:, parts[0]] = conf[:, parts[0]]
     torso_conf[:, parts[0].start + 13: parts[0].start + 23] = 0.0  # elbows, wrists and hand points of the pose part
     if float(torso_conf.sum()) > 0:
-        opt = torch.optim.Adam([cam_rot, cam_trans], lr=cfg.lr * 2)
+        torso = _Terms(pack, torso_conf, [parts[0]], valid)
         with torch.no_grad():
             rest_points = body.forward_keypoints(current_params(), identity, kpset)
-        for _ in range(cfg.camera_iterations):
-            opt.zero_grad()
-            uv = project(rest_points, sixd_to_matrix(cam_rot), cam_trans, intrinsics)
-            loss = reprojection_loss(uv, target, torso_conf, [parts[0]])
-            loss.backward()
-            opt.step()
+        _minimise(lambda: torso.reprojection(uv_of(rest_points), target).sum(), [cam_rot, cam_trans], cfg, "camera",
+                  cfg.lr * 2, [])
 
-    # Stage 2: everything, with the full objective.
-    opt = torch.optim.Adam([*variables.values(), identity, cam_rot, cam_trans], lr=cfg.lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.iterations), eta_min=cfg.lr * 0.05)
-    for _ in range(cfg.iterations):
-        opt.zero_grad()
-        params = current_params()
-        points, uv = keypoints_uv(params)
-        l_kp = reprojection_loss(uv, target, conf, parts)
-        l_acc = acceleration_loss(points[:, valid])
-        l_reg = torch.stack([((params[k] - init[k]) ** 2).mean() for k in params]).mean()
-        loss = cfg.w_kp * l_kp + cfg.w_acc * l_acc + cfg.w_reg * l_reg
-        loss.backward()
-        opt.step()
-        sched.step()
+    # Stage 2: everything, with the full objective (the sum of the clips' objectives).
+    def bounded() -> None:
         with torch.no_grad():
             for k in scalar_streams:
                 if layout[k].bounds is not None:
                     variables[k].clamp_(*layout[k].bounds)
             if layout.identity_bounds is not None:
                 identity.clamp_(*layout.identity_bounds)
-        curve.append(float(loss.detach()))
+
+    def full_loss() -> torch.Tensor:
+        params = current_params()
+        points, uv = keypoints_uv(params)
+        per_clip = (cfg.w_kp * terms.reprojection(uv, target) + cfg.w_acc * terms.acceleration(points)
+                    + cfg.w_reg * terms.regulariser(params, init))
+        return per_clip.sum()
+
+    _minimise(full_loss, [*variables.values(), *([identity] if identity.requires_grad else []), cam_rot, cam_trans], cfg,
+              "full", cfg.lr, curve, project_bounds=bounded)
 
     with torch.no_grad():
         params = current_params()
-        params = {k: (matrix_to_6d(sixd_to_matrix(v.reshape(T, -1, 6))).reshape(T, -1) if k in rot_streams else v)
-                  for k, v in params.items()}  # store orthonormal 6D
+        params = {k: (matrix_to_6d(sixd_to_matrix(v.reshape(v.shape[0], -1, 6))).reshape(v.shape[0], -1)
+                      if k in rot_streams else v) for k, v in params.items()}  # store orthonormal 6D
         _, uv = keypoints_uv(params)
-        visible = conf > 0
-        err = torch.linalg.norm(uv - target, dim=-1)[visible]
-        metrics = {"reproj_px": float(err.mean()), "reproj_px_p95": float(torch.quantile(err, 0.95)),
-                   "final_loss": curve[-1] if curve else float("nan")}
-        fx, fy, cx, cy = (float(v) for v in intrinsics.cpu())
-        camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy,
-                  "rotation": sixd_to_matrix(cam_rot).cpu().tolist(), "translation": cam_trans.cpu().tolist(),
-                  "width": track.image_size[0], "height": track.image_size[1]}
-    return FitResult(
-        params={k: v.detach().cpu().numpy().astype(np.float32) for k, v in params.items()},
-        identity=identity.detach().cpu().numpy().astype(np.float32),
-        camera=camera,
-        metrics=metrics,
-        loss_curve=curve,
-    )
+        err_all = torch.linalg.norm(uv - target, dim=-1)
+        rotations = sixd_to_matrix(cam_rot)
+        ident = identity.detach().cpu().numpy().astype(np.float32)
+        results = []
+        for c, (track, sl) in enumerate(zip(tracks, pack.slices)):
+            err = err_all[sl][conf[sl] > 0]
+            metrics = {"reproj_px": float(err.mean()), "reproj_px_p95": float(torch.quantile(err, 0.95)),
+                       "final_loss": curve[-1] if curve else float("nan")}
+            fx, fy, cx, cy = (float(v) for v in intrinsics[c].cpu())
+            camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "rotation": rotations[c].cpu().tolist(),
+                      "translation": cam_trans[c].cpu().tolist(),
+                      "width": track.image_size[0], "height": track.image_size[1]}
+            results.append(FitResult(
+                params={k: v[sl].detach().cpu().numpy().astype(np.float32) for k, v in params.items()},
+                identity=ident, camera=camera, metrics=metrics, loss_curve=list(curve)))
+    return results

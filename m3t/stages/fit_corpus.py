@@ -2,7 +2,10 @@
 shards (one per split), quarantine and data-quality reports, and an MLflow run.
 
 ``python -m m3t.stages.fit_corpus --corpus NAME``: any corpus of ``corpora`` in params.yaml (root and adapter
-options there; shards to ``data.shards_root/NAME``). The engine is :func:`m3t.fitting.corpus.fit_and_log`.
+options there; shards to ``data.shards_root/NAME``). The engine is :func:`m3t.fitting.corpus.fit_and_log`; it
+fits where ``fit_corpus.executor`` says (:func:`m3t.fitting.cluster.open_executor`: local processes, or a Dask
+cluster, the one at ``fit_corpus.dask_address`` or one started for the run). The shards are the same either way,
+so neither key is a DVC param of this stage.
 """
 from __future__ import annotations
 
