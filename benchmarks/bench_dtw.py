@@ -1,34 +1,40 @@
-"""DTW benchmark: DTW-JPE + DTW-PA-JPE with paths, ``m3t.metrics.motion`` vs a straightforward numpy baseline.
+"""DTW benchmark: DTW-JPE and DTW-PA-JPE with paths, the torch path (old) vs the numba kernels (new), same pairs.
 
 Each pair is one (prediction, ground truth) of ~250 frames (uniform in [200, 300], lengths differ) with SOKE's
-three regions: body (12 points), left and right hand (21 each). Per pair both arms compute, for every region,
-the JPE and the PA cost matrices over all frame pairs, DTW with raw and path-normalised cost, and the path.
+three regions: body (12 points), left and right hand (21 each). Each metric is timed on its own: for DTW-JPE
+the JPE cost matrices, DP, raw and path-normalised cost and path of the 3 regions; DTW-PA-JPE likewise.
 
-- ours: ``evaluate_pairs`` (QCP Procrustes solver, batched anti-diagonal DP, vectorised backtrack), run with
-  1 torch thread, with ``--threads`` intra-op threads, and with ``--threads`` worker threads of 1 torch thread
-  each (``MotionMetricsConfig.workers``); the fastest is the headline;
-- baseline: numpy-vectorised cost matrices (JPE by broadcasting; PA by the classic compute_similarity_transform
-  on all T1 x T2 frame pairs at once: one einsum for the covariances, numpy's batched ``np.linalg.svd``, the
-  reflection fix, the aligned residuals by einsum) followed by a pure-Python double-loop DP and Python
-  backtrack per matrix. Only ``--baseline-pairs`` pairs (it takes seconds per pair); the same pairs are run by
-  ours and the raw costs compared.
+- old: the code ``evaluate_pairs`` ran before the numba kernels: torch cost matrices (``jpe_distance_matrix``,
+  QCP ``pa_distance_matrix``) computed by ``--threads`` worker threads of 1 torch thread each (its fastest
+  configuration), zero-padded into batches of 16 pairs, numpy anti-diagonal DP and vectorised backtrack;
+- new: ``m3t.metrics.kernels.dtw_jobs`` (cost matrix, DP and backtrack fused per job, jobs in parallel on
+  a thread pool), after a warm-up: the compile is timed apart, cold (empty cache) and from the on-disk cache,
+  each in a fresh interpreter;
+- checks: max |raw cost new - old| and the share of identical paths over all jobs; the raw costs of
+  ``--baseline-pairs`` pairs against an independent numpy baseline (batched ``np.linalg.svd`` Procrustes,
+  pure-Python DP); the end-to-end ``evaluate_pairs`` rate (both metrics, default config);
+- ``--device cuda`` (when available): the torch PA cost matrices on the GPU, ``--gpu-batch`` pairs per batched
+  call (``pa_distance_matrices``), then the numba DP and backtrack.
 
-Also reported: where our time goes (JPE matrices, PA matrices, DP sweep, backtrack, measured separately on the
-same pairs) and PA cost matrices with the SVD solver vs the QCP solver (the faster is the default).
+Also reported: PA cost matrices with the SVD solver vs the QCP solver (the faster is the torch default).
 
-    python benchmarks/bench_dtw.py [--pairs 48] [--baseline-pairs 2] [--threads 2] [--out benchmarks/results/dtw.json]
+    python benchmarks/bench_dtw.py [--pairs 48] [--threads 2] [--device cuda] [--out benchmarks/results/dtw.json]
 """
 from __future__ import annotations
 
 import argparse
 import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")  # before numpy/torch load their thread pools
 
+import numba
 import numpy as np
 import torch
 
@@ -36,12 +42,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from report import write_and_log
 
-from m3t.metrics.dtw import accumulate, backtrack, jpe_distance_matrix
-from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs
-from m3t.metrics.procrustes import pa_distance_matrix
+from m3t.metrics import kernels
+from m3t.metrics.dtw import DTWResult, dtw_padded, jpe_distance_matrix
+from m3t.metrics.motion import evaluate_pairs
+from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
 
-GOAL_PAIRS_PER_S = 1000.0
+GOALS = {"jpe": 1000.0, "pa": 100.0, "pa_gpu": 2000.0}  # pairs/s
 REGIONS = {"body": (12, 0.15), "left_hand": (21, 0.05), "right_hand": (21, 0.05)}  # points, rest-shape spread (m)
+OLD_BATCH = 16  # evaluate_pairs' batch_pairs
+COMPILE_SNIPPET = """
+import time
+import numpy as np
+from m3t.metrics import kernels
+start = time.perf_counter()
+rng = np.random.default_rng(0)
+p, g = rng.normal(size=(5, 21, 3)), rng.normal(size=(4, 21, 3))
+kernels.dtw_jobs([kernels.CostJob(p, g, False), kernels.CostJob(p, g, True)])
+kernels.dtw_costs([rng.random((3, 4))])
+print(time.perf_counter() - start)
+"""
 
 
 def make_pairs(count: int, seed: int) -> list[tuple[dict, dict]]:
@@ -57,7 +76,79 @@ def make_pairs(count: int, seed: int) -> list[tuple[dict, dict]]:
     return [(sequence(), sequence()) for _ in range(count)]
 
 
-# ---------------------------------------------------------------- baseline
+# ---------------------------------------------------------------- old and new arms
+
+
+def old_arm(pairs: list[tuple[dict, dict]], procrustes: bool, workers: int) -> list[DTWResult]:
+    """The pre-kernel ``evaluate_pairs`` path for one metric: torch matrices by worker threads + numpy DP."""
+    results = []
+    for start in range(0, len(pairs), OLD_BATCH):
+        jobs = [(torch.as_tensor(p[r]), torch.as_tensor(g[r])) for p, g in pairs[start:start + OLD_BATCH]
+                for r in REGIONS]
+        lengths = np.array([[len(p), len(g)] for p, g in jobs])
+        tables = torch.zeros(*lengths.max(0), len(jobs), dtype=torch.float64)
+
+        def fill(b: int) -> None:
+            p, g = jobs[b]
+            tables[:len(p), :len(g), b] = pa_distance_matrix(p, g) if procrustes else jpe_distance_matrix(p, g)
+
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(fill, range(len(jobs))))
+        results += dtw_padded(tables.numpy(), lengths)
+    return results
+
+
+def new_arm(pairs: list[tuple[dict, dict]], procrustes: bool) -> list[DTWResult]:
+    return kernels.dtw_jobs([kernels.CostJob(p[r], g[r], procrustes) for p, g in pairs for r in REGIONS])
+
+
+def gpu_arm(pairs: list[tuple[dict, dict]], device: str, batch: int) -> list[DTWResult]:
+    """Torch PA cost matrices on ``device``, ``batch`` pairs per region per call, then the numba DP."""
+    results = []
+    for start in range(0, len(pairs), batch):
+        chunk = pairs[start:start + batch]
+        costs = {}
+        for r in REGIONS:
+            pred = torch.nn.utils.rnn.pad_sequence([torch.as_tensor(p[r]) for p, _ in chunk], batch_first=True)
+            gt = torch.nn.utils.rnn.pad_sequence([torch.as_tensor(g[r]) for _, g in chunk], batch_first=True)
+            costs[r] = pa_distance_matrices(pred.to(device), gt.to(device), chunk_pairs=1 << 24,
+                                            residual_elements=1 << 26).cpu().numpy()
+        results += kernels.dtw_costs([costs[r][n, :len(p[r]), :len(g[r])] for n, (p, g) in enumerate(chunk)
+                                      for r in REGIONS])
+    return results
+
+
+def best_seconds(run, repeats: int) -> tuple[float, list]:
+    """Fastest of ``repeats`` runs (the machine is shared) and the last result."""
+    best, out = float("inf"), None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = run()
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def agreement(new: list[DTWResult], old: list[DTWResult]) -> tuple[float, float]:
+    """Max |raw cost difference| and the share of identical paths."""
+    diff = max(abs(a.cost_raw - b.cost_raw) for a, b in zip(new, old, strict=True))
+    same = np.mean([np.array_equal(a.path, b.path) for a, b in zip(new, old, strict=True)])
+    return float(diff), float(same)
+
+
+def compile_seconds() -> dict[str, float]:
+    """Seconds of the first kernel calls in a fresh interpreter (imports excluded): empty cache, then cached."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env["NUMBA_CACHE_DIR"] = cache
+        for name in ("compile_cold_s", "compile_cached_s"):
+            run = subprocess.run([sys.executable, "-c", COMPILE_SNIPPET], env=env, capture_output=True, text=True,
+                                 check=True)
+            out[name] = float(run.stdout.split()[-1])
+    return out
+
+
+# ---------------------------------------------------------------- independent numpy baseline
 
 
 def numpy_jpe_matrix(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -79,104 +170,68 @@ def numpy_pa_matrix(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.linalg.norm(aligned - y[None], axis=-1).mean(-1)
 
 
-def python_dtw(cost: np.ndarray) -> tuple[float, list[tuple[int, int]], float]:
+def python_dtw(cost: np.ndarray) -> float:
+    """Raw DTW cost by the textbook double loop."""
     c = cost.tolist()
     t1, t2 = len(c), len(c[0])
     inf = float("inf")
     d = [[inf] * t2 for _ in range(t1)]
     for i in range(t1):
         for j in range(t2):
-            if i == 0 and j == 0:
-                d[i][j] = c[0][0]
-            else:
-                d[i][j] = c[i][j] + min(d[i - 1][j] if i else inf, d[i][j - 1] if j else inf,
-                                        d[i - 1][j - 1] if i and j else inf)
-    i, j = t1 - 1, t2 - 1
-    path = [(i, j)]
-    while i or j:
-        if i == 0:
-            j -= 1
-        elif j == 0:
-            i -= 1
-        elif d[i - 1][j - 1] <= min(d[i - 1][j], d[i][j - 1]):
-            i, j = i - 1, j - 1
-        elif d[i - 1][j] <= d[i][j - 1]:
-            i -= 1
-        else:
-            j -= 1
-        path.append((i, j))
-    return d[-1][-1], path[::-1], d[-1][-1] / len(path)
+            d[i][j] = c[0][0] if i == 0 and j == 0 else c[i][j] + min(
+                d[i - 1][j] if i else inf, d[i][j - 1] if j else inf, d[i - 1][j - 1] if i and j else inf)
+    return d[-1][-1]
 
 
-def baseline_pair(pred: dict, gt: dict) -> dict[str, float]:
-    out = {}
-    for region in REGIONS:
-        for stem, matrix in (("dtw_jpe", numpy_jpe_matrix), ("dtw_pa_jpe", numpy_pa_matrix)):
-            raw, _, norm = python_dtw(matrix(pred[region], gt[region]))
-            out[f"{stem}_{region}_m"], out[f"{stem}_{region}_pathnorm_m"] = raw, norm
-    return out
+def baseline_costs(pairs: list[tuple[dict, dict]], procrustes: bool) -> list[float]:
+    matrix = numpy_pa_matrix if procrustes else numpy_jpe_matrix
+    return [python_dtw(matrix(p[r], g[r])) for p, g in pairs for r in REGIONS]
 
 
-# ---------------------------------------------------------------- breakdown of ours
-
-
-def breakdown(pairs: list[tuple[dict, dict]]) -> dict[str, float]:
-    """Seconds spent in each stage of ``evaluate_pairs`` on the same pairs, timed one stage at a time."""
-    t = dict.fromkeys(("jpe_matrices_s", "pa_matrices_s", "dp_sweep_s", "backtrack_s"), 0.0)
-    tensors = [({r: torch.as_tensor(v) for r, v in p.items()}, {r: torch.as_tensor(v) for r, v in g.items()})
-               for p, g in pairs]
-    costs, lengths = [], []
-    for pred, gt in tensors:
-        for region in REGIONS:
-            start = time.perf_counter()
-            costs.append(jpe_distance_matrix(pred[region], gt[region]))
-            t["jpe_matrices_s"] += time.perf_counter() - start
-            start = time.perf_counter()
-            costs.append(pa_distance_matrix(pred[region], gt[region]))
-            t["pa_matrices_s"] += time.perf_counter() - start
-            lengths += [(len(pred[region]), len(gt[region]))] * 2
-    lengths = np.array(lengths)
-    for s in range(0, len(costs), 96):  # evaluate_pairs' batches: 16 pairs x 6 matrices
-        chunk, lens = costs[s:s + 96], lengths[s:s + 96]
-        tables = np.zeros((*lens.max(0), len(chunk)))
-        for b, c in enumerate(chunk):
-            tables[:c.shape[0], :c.shape[1], b] = c.numpy()
-        start = time.perf_counter()
-        accumulate(tables)
-        t["dp_sweep_s"] += time.perf_counter() - start
-        start = time.perf_counter()
-        backtrack(tables, lens)
-        t["backtrack_s"] += time.perf_counter() - start
-    return t
+# ---------------------------------------------------------------- main
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=48)
     parser.add_argument("--baseline-pairs", type=int, default=2)
-    parser.add_argument("--solver-pairs", type=int, default=4, help="pairs for the SVD vs QCP solver comparison")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--solver-pairs", type=int, default=2, help="pairs for the SVD vs QCP solver comparison")
+    parser.add_argument("--threads", type=int, default=2, help="worker threads of the old path")
+    parser.add_argument("--repeats", type=int, default=5, help="runs of each new arm; the fastest counts")
+    parser.add_argument("--device", default="cpu", help="cuda: also time the torch PA path on the GPU")
+    parser.add_argument("--gpu-batch", type=int, default=64)
     parser.add_argument("--out", default="benchmarks/results/dtw.json")
     args = parser.parse_args()
     pairs = make_pairs(args.pairs, seed=0)
-    configs = {"1thread": (1, 1), f"{args.threads}threads_intraop": (args.threads, 1),
-               f"{args.threads}workers_1thread": (1, args.threads)}
-    rates, ours = {}, None
-    for name, (threads, workers) in configs.items():
-        torch.set_num_threads(threads)
-        config = MotionMetricsConfig(workers=workers)
-        evaluate_pairs(pairs[:2], config=config)  # warm-up
-        best = float("inf")
-        for _ in range(args.repeats):  # the machine is shared: keep the fastest repeat
-            start = time.perf_counter()
-            ours = evaluate_pairs(pairs, config=config)
-            best = min(best, time.perf_counter() - start)
-        rates[name] = args.pairs / best
-    best_config = max(rates, key=rates.get)
+    torch.set_num_threads(1)
+    compiled = compile_seconds()
+    new_arm(pairs[:1], False), new_arm(pairs[:1], True)  # load the compiled kernels in this process
 
-    torch.set_num_threads(1)  # stage timings and the solver comparison, single-threaded
-    parts = breakdown(pairs)
+    result: dict = {
+        "pairs": args.pairs, "frames_per_sequence": "uniform 200-300",
+        "regions": "body 12 + left_hand 21 + right_hand 21 points",
+        "mean_frames": float(np.mean([len(p["body"]) for pair in pairs for p in pair])),
+    }
+    for metric, procrustes in (("jpe", False), ("pa", True)):
+        old_s, old = best_seconds(lambda: old_arm(pairs, procrustes, args.threads), 1 if procrustes else 3)
+        new_s, new = best_seconds(lambda: new_arm(pairs, procrustes), args.repeats)
+        diff, same = agreement(new, old)
+        reference = baseline_costs(pairs[:args.baseline_pairs], procrustes)
+        result.update({
+            f"{metric}_old_pairs_per_s": args.pairs / old_s,
+            f"{metric}_new_pairs_per_s": args.pairs / new_s,
+            f"{metric}_speedup_new_vs_old": old_s / new_s,
+            f"{metric}_goal_pairs_per_s": GOALS[metric],
+            f"{metric}_goal_met": args.pairs / new_s >= GOALS[metric],
+            f"{metric}_max_abs_cost_difference_new_vs_old_m": diff,
+            f"{metric}_identical_paths_new_vs_old": same,
+            f"{metric}_max_abs_cost_difference_new_vs_numpy_baseline_m": max(
+                abs(a.cost_raw - b) for a, b in zip(new, reference)),
+        })
+    both_s, _ = best_seconds(lambda: evaluate_pairs(pairs), args.repeats)
+    result["evaluate_pairs_both_metrics_pairs_per_s"] = args.pairs / both_s
+    result.update(compiled)
+
     solver = {}
     for method in ("quaternion", "svd"):
         start = time.perf_counter()
@@ -184,42 +239,32 @@ def main() -> None:
             for region in REGIONS:
                 pa_distance_matrix(torch.as_tensor(pred[region]), torch.as_tensor(gt[region]), method)
         solver[method] = (time.perf_counter() - start) / args.solver_pairs
+    result.update({"torch_pa_matrices_s_per_pair_qcp": solver["quaternion"],
+                   "torch_pa_matrices_s_per_pair_svd": solver["svd"],
+                   "torch_qcp_speedup_vs_svd": solver["svd"] / solver["quaternion"]})
 
-    base = pairs[:args.baseline_pairs]
-    start = time.perf_counter()
-    reference = [baseline_pair(p, g) for p, g in base]
-    baseline_s = time.perf_counter() - start
-    max_diff = max(abs(r[k] - o[k]) for r, o in zip(reference, ours) for k in r)
-
-    ours_rate, base_rate = rates[best_config], args.baseline_pairs / baseline_s
-    total_parts = sum(parts.values())
-    result = {
-        "pairs": args.pairs,
-        "baseline_pairs": args.baseline_pairs,
-        "frames_per_sequence": "uniform 200-300",
-        "regions": "body 12 + left_hand 21 + right_hand 21 points",
-        "mean_frames": float(np.mean([len(p["body"]) for pair in pairs for p in pair])),
-        "ours_pairs_per_s": ours_rate,
-        "ours_best_config": best_config,
-        **{f"ours_pairs_per_s_{name}": rate for name, rate in rates.items()},
-        "baseline_pairs_per_s": base_rate,
-        "speedup_vs_baseline": ours_rate / base_rate,
-        "goal_pairs_per_s": GOAL_PAIRS_PER_S,
-        "goal_met": ours_rate >= GOAL_PAIRS_PER_S,
-        "max_abs_difference_vs_baseline_m": max_diff,
-        **{f"ours_{k}_per_pair": v / args.pairs for k, v in parts.items()},
-        **{f"share_{k[:-2]}": v / total_parts for k, v in parts.items()},
-        "pa_matrices_s_per_pair_qcp": solver["quaternion"],
-        "pa_matrices_s_per_pair_svd": solver["svd"],
-        "qcp_speedup_vs_svd": solver["svd"] / solver["quaternion"],
-        "baseline": "numpy-vectorised JPE/PA cost matrices (batched np.linalg.svd Procrustes) + pure-Python DP and "
-                    "backtrack",
-        "stage_timings_threads": 1,
+    if args.device != "cpu":
+        if not torch.cuda.is_available() and args.device.startswith("cuda"):
+            result["pa_gpu"] = f"not measured: device {args.device!r} unavailable"
+        else:
+            gpu_arm(pairs[:2], args.device, args.gpu_batch)  # warm-up
+            gpu_s, gpu = best_seconds(lambda: gpu_arm(pairs, args.device, args.gpu_batch), args.repeats)
+            diff, same = agreement(gpu, new_arm(pairs, True))
+            result.update({"pa_gpu_pairs_per_s": args.pairs / gpu_s, "pa_gpu_goal_pairs_per_s": GOALS["pa_gpu"],
+                           "pa_gpu_goal_met": args.pairs / gpu_s >= GOALS["pa_gpu"],
+                           "pa_gpu_max_abs_cost_difference_vs_new_m": diff, "pa_gpu_identical_paths_vs_new": same,
+                           "gpu": torch.cuda.get_device_name(args.device)})
+    result.update({
+        "old": f"torch cost matrices ({args.threads} worker threads x 1 torch thread), numpy anti-diagonal DP + "
+               "vectorised backtrack, batches of 16 pairs",
+        "new": "numba kernels: cost matrix + DP + backtrack fused per job, jobs on a thread pool",
+        "new_threads": kernels.available_cores(),
         "machine": platform.machine(),
         "cpu_count": os.cpu_count(),
         "torch": torch.__version__,
         "numpy": np.__version__,
-    }
+        "numba": numba.__version__,
+    })
     write_and_log(result, args.out, "benchmark-dtw")
 
 

@@ -13,6 +13,16 @@ arrays in metres, so no body model is needed here:
 
 Raw costs grow with sequence length (SOKE reports them so); the path-normalised ones compare across lengths.
 
+**Two backends** (:attr:`MotionMetricsConfig.backend`), the same numbers (``tests/test_dtw_kernels.py``: cost
+matrices to ~1e-15 on motion, 1e-6 on degenerate frames such as collinear points; identical paths).
+``"numba"`` (the default) runs :mod:`m3t.metrics.kernels`: cost matrix, DP and backtrack fused per (pair,
+region, metric) job, jobs in parallel on every core the process may use (its CPU affinity: ``taskset`` limits
+it). ``"torch"`` computes the cost matrices with :mod:`m3t.metrics.dtw` /
+:mod:`m3t.metrics.procrustes` on ``device`` (a GPU: the PA matrices of a batch in one batched call), then
+the DP and backtrack by the numba kernel, or by the numpy sweep where numba is not installed. The numba backend
+without numba fails naming the package rather than falling back: a silent 10-30x slowdown of an evaluation is
+worse than an install step.
+
 **Two modes** (:attr:`MotionMetricsConfig.mode`). ``"m3t"`` (the default, every table of this project) roots
 the body at the neck and fits the body's Procrustes on its 12 points. Anny, the default body model, has no
 SMPL-X pelvis or spine convention (its body stream moves two spine bones), and rooting at the neck measures
@@ -37,8 +47,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from m3t.metrics.dtw import dtw_padded, jpe_distance_matrix
-from m3t.metrics.procrustes import pa_distance_matrix
+from m3t.metrics.dtw import DTWResult, dtw_batch, jpe_distance_matrix
+from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
 from m3t.metrics.soke import BODY_MEASURED, soke_names
 
 Regions = Mapping[str, "np.ndarray | torch.Tensor"]
@@ -51,17 +61,25 @@ class MotionMetricsConfig:
 
     procrustes_regions: tuple[str, ...] = ("body", "left_hand", "right_hand")
     procrustes_method: str = "quaternion"
-    batch_pairs: int = 16  # sequence pairs whose DTW tables are swept together
+    batch_pairs: int = 16  # pairs per round of jobs; on a GPU (backend "torch") one batched PA call: raise it
     # Threads computing cost matrices concurrently (torch releases the GIL inside ops). With workers > 1 set
     # torch.set_num_threads(1): intra-op threads on top oversubscribe the cores, and on a shared machine an
     # OpenMP barrier waiting for a descheduled thread was measured 10-30x slower.
-    workers: int = 1
+    workers: int = 1  # backend "torch" only; the numba kernels use every core of the process's affinity
     mode: Literal["m3t", "soke_exact"] = "m3t"
+    backend: Literal["numba", "torch"] = "numba"  # who computes the cost matrices (see the module docstring)
+    device: str = "cpu"  # backend "torch": where the cost matrices are computed, e.g. "cuda"
 
     def __post_init__(self) -> None:
         if self.mode not in ("m3t", "soke_exact"):
             raise ValueError(f"motion metric mode {self.mode!r} unknown; use 'm3t' (neck-rooted body, this "
                              "project's tables) or 'soke_exact' (SOKE's pelvis-rooted body, needs SMPL-FX)")
+        if self.backend not in ("numba", "torch"):
+            raise ValueError(f"motion metric backend {self.backend!r} unknown; use 'numba' (fused CPU kernels) or "
+                             "'torch' (cost matrices on any torch device)")
+        if self.backend == "numba" and torch.device(self.device).type != "cpu":
+            raise ValueError(f"motion metric device {self.device!r} needs backend 'torch'; the numba kernels run on "
+                             "the CPU")
 
 
 def error_name(region: str, procrustes: bool) -> str:
@@ -125,27 +143,70 @@ def _add_hand_means(metrics: dict[str, float]) -> None:
             metrics[name.replace("_left_hand_", "_hand_")] = 0.5 * (metrics[name] + metrics[right])
 
 
-def _cost_tables(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jobs: list[tuple[int, str, bool]],
-                 config: MotionMetricsConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-padded (T1, T2, jobs) cost matrices of (pair, region, procrustes) jobs, and their (jobs, 2) sizes."""
-    lengths = np.array([[checked[n][r][0].shape[0], checked[n][r][1].shape[0]] for n, r, _ in jobs])
-    tables = torch.zeros(*lengths.max(0), len(jobs), dtype=torch.float64)
+Job = tuple[int, str, bool]  # (pair, region, procrustes)
+GPU_CHUNK_PAIRS = 1 << 24  # frame pairs per batched PA call on a GPU: few, large launches
+GPU_RESIDUAL_ELEMENTS = 1 << 26  # aligned residual entries at once on a GPU (512 MB in float64)
+
+
+def _kernels():
+    """:mod:`m3t.metrics.kernels`, imported on first use; a missing numba is named with its fix."""
+    try:
+        from m3t.metrics import kernels
+    except ImportError as exc:
+        if exc.name != "numba":
+            raise
+        raise ImportError("motion metric backend 'numba' needs the numba package: pip install numba (a dependency "
+                          "of m3t-platform), or score with MotionMetricsConfig(backend='torch')") from exc
+    return kernels
+
+
+def _numba_dtw(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jobs: list[Job],
+               config: MotionMetricsConfig) -> list[DTWResult]:
+    kernels = _kernels()
+    return kernels.dtw_jobs([kernels.CostJob(checked[n][region][0].numpy(), checked[n][region][1].numpy(), pa,
+                                             _measured(region, config)) for n, region, pa in jobs])
+
+
+def _batched_pa(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jobs: list[Job],
+                config: MotionMetricsConfig) -> dict[int, torch.Tensor]:
+    """{job: (T1, T2) PA cost} of the PA jobs, one zero-padded batched call per region on ``config.device``."""
+    out = {}
+    for region in sorted({r for _, r, pa in jobs if pa}):
+        picked = [b for b, (_, r, pa) in enumerate(jobs) if pa and r == region]
+        sides = [checked[jobs[b][0]][region] for b in picked]
+        pred = torch.nn.utils.rnn.pad_sequence([p for p, _ in sides], batch_first=True).to(config.device)
+        gt = torch.nn.utils.rnn.pad_sequence([g for _, g in sides], batch_first=True).to(config.device)
+        costs = pa_distance_matrices(pred, gt, config.procrustes_method, GPU_CHUNK_PAIRS, _measured(region, config),
+                                     GPU_RESIDUAL_ELEMENTS).cpu()
+        out.update({b: costs[m, :p.shape[0], :g.shape[0]] for m, (b, (p, g)) in enumerate(zip(picked, sides))})
+    return out
+
+
+def _torch_dtw(checked: list[dict[str, tuple[torch.Tensor, torch.Tensor]]], jobs: list[Job],
+               config: MotionMetricsConfig) -> list[DTWResult]:
+    """Cost matrices by torch on ``config.device``, DTW by the numba kernel (numpy sweep without numba)."""
+    on_cpu = torch.device(config.device).type == "cpu"
+    costs = {} if on_cpu else _batched_pa(checked, jobs, config)  # {job: (T1, T2) CPU tensor}
 
     def fill(b: int) -> None:
         n, region, pa = jobs[b]
-        p, g = checked[n][region]
+        p, g = (side.to(config.device) for side in checked[n][region])
         measure = _measured(region, config)
-        cost = (pa_distance_matrix(p, g, config.procrustes_method, measure=measure) if pa
-                else jpe_distance_matrix(p, g, measure=measure))
-        tables[:p.shape[0], :g.shape[0], b] = cost.cpu()  # each job owns its slice of the batch
+        costs[b] = (pa_distance_matrix(p, g, config.procrustes_method, measure=measure) if pa
+                    else jpe_distance_matrix(p, g, measure=measure)).cpu()  # each job owns its key
 
+    todo = [b for b in range(len(jobs)) if b not in costs]
     if config.workers > 1:
         with ThreadPoolExecutor(config.workers) as pool:
-            list(pool.map(fill, range(len(jobs))))
+            list(pool.map(fill, todo))
     else:
-        for b in range(len(jobs)):
+        for b in todo:
             fill(b)
-    return tables.numpy(), lengths
+    try:
+        kernels = _kernels()
+    except ImportError:  # the numpy sweep gives the same costs and paths, ~10x slower
+        return dtw_batch([costs[b] for b in range(len(jobs))])
+    return kernels.dtw_costs([costs[b].numpy() for b in range(len(jobs))])
 
 
 def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = False,
@@ -153,8 +214,8 @@ def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = Fa
     """DTW metrics of many (prediction, ground truth) pairs, each a dict of region -> (T, K, 3) metres.
 
     Pairs are validated first (a bad one raises ``ValueError`` naming it before any work), then processed in
-    batches of similar length so that their DTW tables are swept together. Returns one metrics dict per pair,
-    in input order.
+    batches of ``config.batch_pairs`` of similar length (their jobs run in parallel; on a GPU their zero-padded
+    PA matrices are one call). Returns one metrics dict per pair, in input order.
     """
     checked = [_validated(p, g, n, config) for n, (p, g) in enumerate(pairs)]
     results: list[dict[str, float]] = [{} for _ in checked]
@@ -165,7 +226,8 @@ def evaluate_pairs(pairs: Sequence[tuple[Regions, Regions]], progress: bool = Fa
             batch = order[start:start + config.batch_pairs]
             jobs = [(n, region, pa) for n in batch for region in checked[n]
                     for pa in ((False, True) if region in config.procrustes_regions else (False,))]
-            for (n, region, pa), res in zip(jobs, dtw_padded(*_cost_tables(checked, jobs, config))):
+            dtw = _numba_dtw if config.backend == "numba" else _torch_dtw
+            for (n, region, pa), res in zip(jobs, dtw(checked, jobs, config)):
                 stem = error_name(region, pa)
                 results[n][f"{stem}_m"] = res.cost_raw
                 results[n][f"{stem}_pathnorm_m"] = res.cost_pathnorm

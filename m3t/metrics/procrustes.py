@@ -11,7 +11,9 @@ the translation that maps centroids. Two solvers give the same answer:
   LAPACK's batched ``torch.linalg.svd`` loops over matrices one by one and is 5x slower or worse on CPU
   (``benchmarks/bench_dtw.py`` measures both; results agree to ~1e-13). Ill-conditioned problems (nearly
   collinear points, whose eigenvector is not unique) are re-solved by SVD, where every optimal rotation
-  aligns alike.
+  aligns alike; so are those where Newton did not end on the largest root: at a double root (collinear
+  points onto the same line) f and f' vanish together, one rounding-sized step can jump far below, and the
+  iteration then stalls where f' <= 0 (the rotation of a line onto itself came out with scale 2/3).
 - ``"svd"``: the textbook SVD with ``Z = diag(1, 1, sign det(U V^T))``.
 
 Optional point ``weights`` give Umeyama's weighted problem (weighted centroids, covariance and scale
@@ -21,8 +23,10 @@ denominator); without them every point counts alike. ``procrustes_error_mm`` is 
 ``pa_distance_matrix`` is SOKE's ``dist_pa`` for every (prediction frame, ground-truth frame) pair, the cost
 matrix of DTW-PA-JPE: the cross-covariances of all pairs come from one matrix product, the transforms from
 the solver above, the aligned residuals from batched matrix products, in row chunks that bound memory.
+``pa_distance_matrices`` does B sequence pairs in the same ops (a GPU wants few, large launches). The CPU
+default of DTW-PA-JPE is the fused kernel of :mod:`m3t.metrics.kernels`, checked against these.
 
-Axis legend: K points, T1 prediction frames, T2 ground-truth frames, ``...`` any batch axes.
+Axis legend: B sequence pairs, K points, T1 prediction frames, T2 ground-truth frames, ``...`` any batch axes.
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ NEWTON_TOLERANCE = 1e-12  # relative to the starting bound
 CHUNK_PAIRS = 8192
 RESIDUAL_ELEMENTS = 1 << 18  # (rows x T2 x 3 x K) residual entries at once: about 2 MB, cache-resident
 ILL_CONDITIONED = 1e-8  # top adjugate diagonal below this x bound^3: eigenvalue gap too small -> SVD
+NEWTON_RESIDUAL = 1e-8  # |f(lambda)| above this x |S|_F^4 after Newton: not a root -> SVD (rounding is ~1e-15)
 
 
 @dataclass(frozen=True)
@@ -145,6 +150,11 @@ def _rotation_quaternion(cov: torch.Tensor, upper: torch.Tensor) -> tuple[torch.
         q = [torch.where(better, new, old) for new, old in zip(adjugate[col], q)]
         top = torch.maximum(top, diagonal)
     ill = top <= ILL_CONDITIONED * upper * upper * upper
+    # Not on the largest root: f(lambda) is no root, or lambda is below a Rayleigh quotient (a diagonal of N).
+    lam2 = lam * lam
+    ill |= ((lam2 + q2) * lam2 + q1 * lam + q0).abs() > NEWTON_RESIDUAL * 0.25 * q2 * q2
+    lower = torch.maximum(torch.maximum(horn[0][0], horn[1][1]), torch.maximum(horn[2][2], horn[3][3]))
+    ill |= lam < lower - tolerance
     norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt()
     zero = norm == 0  # a zero covariance: every rotation is optimal, take the identity
     inv = 1.0 / torch.where(zero, torch.ones_like(norm), norm)
@@ -270,33 +280,60 @@ def pa_distance_matrix(pred: torch.Tensor, gt: torch.Tensor, method: str = "quat
     -------
     (T1, T2) tensor in pred's dtype and units.
     """
-    t1, k, t2 = check_sequence_pair(pred, gt)
-    xs = (pred - pred.mean(1, keepdim=True)).transpose(1, 2)  # (T1, 3, K)
-    yt = (gt - gt.mean(1, keepdim=True)).transpose(1, 2).contiguous()  # (T2, 3, K)
-    var_s, var_t = xs.square().sum((1, 2)), yt.square().sum((1, 2))  # (T1,), (T2,)
-    # All cross-covariances in one product: (3*T1, K) @ (K, 3*T2) -> S[a, b, i, j] = sum_k x_iak y_jbk.
-    cov = xs.permute(1, 0, 2).reshape(3 * t1, k) @ yt.permute(2, 1, 0).reshape(k, 3 * t2)
-    cov = cov.reshape(3, t1, 3, t2).transpose(1, 2).contiguous()  # (3, 3, T1, T2)
+    check_sequence_pair(pred, gt)
+    return pa_distance_matrices(pred[None], gt[None], method, chunk_pairs, measure)[0]
+
+
+def pa_distance_matrices(pred: torch.Tensor, gt: torch.Tensor, method: str = "quaternion",
+                         chunk_pairs: int = CHUNK_PAIRS, measure: slice | None = None,
+                         residual_elements: int = RESIDUAL_ELEMENTS) -> torch.Tensor:
+    """``pa_distance_matrix`` of B sequence pairs at once, for devices where one launch per pair is too many.
+
+    Parameters
+    ----------
+    pred : (B, T1, K, 3); gt : (B, T2, K, 3). Pairs of other lengths may be zero-padded up to T1 and T2: a
+        zero frame has scale 0 and identity rotation, so its costs are finite (and meaningless; crop them).
+    chunk_pairs : (B x rows x T2) frame pairs solved at once; the CPU default keeps temporaries in cache, a GPU
+        wants millions.
+    residual_elements : (B x rows x T2 x 3 x K) aligned residual entries held at once.
+
+    Returns
+    -------
+    (B, T1, T2) tensor in pred's dtype and units.
+    """
+    if pred.ndim != 4 or gt.ndim != 4 or pred.shape[0] != gt.shape[0] or pred.shape[2:] != gt.shape[2:] \
+            or pred.shape[-1] != 3:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must be (B, T1, K, 3) and (B, T2, K, 3)")
+    b, t1, k, _ = pred.shape
+    t2 = gt.shape[1]
+    xs = (pred - pred.mean(2, keepdim=True)).transpose(2, 3)  # (B, T1, 3, K)
+    yt = (gt - gt.mean(2, keepdim=True)).transpose(2, 3).contiguous()  # (B, T2, 3, K)
+    var_s, var_t = xs.square().sum((2, 3)), yt.square().sum((2, 3))  # (B, T1), (B, T2)
+    # All cross-covariances in one product: (B, 3*T1, K) @ (B, K, 3*T2) -> S[a, b, n, i, j] = sum_k x_iak y_jbk.
+    cov = xs.permute(0, 2, 1, 3).reshape(b, 3 * t1, k) @ yt.permute(0, 3, 2, 1).reshape(b, k, 3 * t2)
+    cov = cov.reshape(b, 3, t1, 3, t2).permute(1, 3, 0, 2, 4).contiguous()  # (3, 3, B, T1, T2)
     if measure is not None:  # residuals of the measured points only, in the full set's centred frame
-        xs, yt = xs[:, :, measure], yt[:, :, measure].contiguous()  # (T1, 3, K'), (T2, 3, K')
+        xs, yt = xs[..., measure], yt[..., measure].contiguous()  # (B, T1, 3, K'), (B, T2, 3, K')
         k = yt.shape[-1]
         if k == 0:
-            raise ValueError(f"measure {measure} selects none of the {pred.shape[1]} points")
-    rows = max(1, chunk_pairs // t2)
-    sub_rows = max(1, RESIDUAL_ELEMENTS // (t2 * 3 * k))
-    neg_target = (-yt).reshape(t2 * 3, k)
-    out = torch.empty(t1, t2, dtype=pred.dtype, device=pred.device)
+            raise ValueError(f"measure {measure} selects none of the {pred.shape[2]} points")
+    rows = max(1, chunk_pairs // (b * t2))
+    sub_rows = max(1, residual_elements // (b * t2 * 3 * k))
+    neg_target = (-yt).reshape(b, 1, t2 * 3, k)
+    out = torch.empty(b, t1, t2, dtype=pred.dtype, device=pred.device)
     for start in range(0, t1, rows):
         sl = slice(start, min(start + rows, t1))
-        rotation, trace = _rotation_component_first(cov[:, :, sl], var_s[sl, None], var_t[None, :], method)
-        vs = var_s[sl, None]
+        rotation, trace = _rotation_component_first(cov[:, :, :, sl], var_s[:, sl, None], var_t[:, None, :], method)
+        vs = var_s[:, sl, None]
         scale = torch.where(vs > 0, trace / torch.where(vs > 0, vs, torch.ones_like(vs)), torch.zeros_like(trace))
-        s_rot = (rotation * scale).permute(2, 3, 0, 1).reshape(-1, t2 * 3, 3)  # (c, T2*3, 3)
-        for sub in range(0, s_rot.shape[0], sub_rows):
-            part = s_rot[sub:sub + sub_rows]
-            c = part.shape[0]
+        s_rot = (rotation * scale).permute(2, 3, 4, 0, 1).reshape(b, -1, t2 * 3, 3)  # (B, c, T2*3, 3)
+        for sub in range(0, s_rot.shape[1], sub_rows):
+            part = s_rot[:, sub:sub + sub_rows]
+            c = part.shape[1]
             # s R x - y for every (i, j, point); centroids already coincide. baddbmm fuses the subtraction.
-            residual = torch.baddbmm(neg_target.expand(c, -1, -1), part, xs[start + sub:start + sub + c])
-            residual = residual.reshape(c, t2, 3, k).square_()
-            out[start + sub:start + sub + c] = residual.sum(2).sqrt_().mean(-1)
+            residual = torch.baddbmm(neg_target.expand(b, c, -1, -1).reshape(b * c, t2 * 3, k),
+                                     part.reshape(b * c, t2 * 3, 3),
+                                     xs[:, start + sub:start + sub + c].reshape(b * c, 3, k))
+            residual = residual.reshape(b, c, t2, 3, k).square_()
+            out[:, start + sub:start + sub + c] = residual.sum(3).sqrt_().mean(-1)
     return out
