@@ -50,7 +50,7 @@ class FitCorpusConfig:
     cache_dir: str = ".cache/fit"  # tracks and per-clip fits, content-addressed (shared by every corpus)
     workers: int = 2  # processes of the local executor (1 = in this process), or of the LocalCluster of dask
     max_clips: int = 0  # 0 = every clip
-    batch_clips: int = 16  # a signer's clips fitted together with one identity, at most this many (1 = per clip)
+    batch_clips: int = 1  # > 1: a signer's clips fitted together with one identity, at most this many; 1 = per clip
     batch_frames: int = 2048  # frames per fit at most; a batch's further chunks hold the identity of its first
     render_clips: int = 2  # fitted clips pictured in the MLflow run
     # where clips are fitted (m3t.fitting.cluster): local = `workers` processes here; dask = a Dask cluster, on

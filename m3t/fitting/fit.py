@@ -58,7 +58,9 @@ def _intrinsics(track: Track, cfg: FittingConfig) -> torch.Tensor:
 
 def _init_extrinsics(body: BodyModel, identity: torch.Tensor, cfg: FittingConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """A frontal camera at ``cfg.camera_distance`` looking at the chest (between neck and spine)."""
-    joints = body.forward(body.rest_params(1), identity).joints[0]
+    rest = body.rest_params(1)
+    device = next(iter(rest.values())).device
+    joints = body.forward(rest, identity.to(device)).joints[0].cpu()
     names = list(body.joint_names)
     chest = joints[[i for i, n in enumerate(names) if n.startswith(("neck", "spine"))]].mean(0).numpy()
     up = np.array([0.0, 0.0, 1.0])

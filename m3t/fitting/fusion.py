@@ -14,7 +14,8 @@ Fusion is per modality and per frame:
    frames are interpolated (rotations joint by joint along the geodesic, scalars linearly), longer gaps
    and the clip ends hold the nearest covered value, and a modality no stream covers at all stays at the
    rest pose; :attr:`FusedInit.source` flags every frame (stream index, or ``INTERPOLATED`` / ``HELD`` / ``REST``);
-3. the identity is the per-signer median: SMPL-X betas from NLF, FLAME shape from Pixel3DMM.
+3. the identity is the clip's median over its frames (SMPL-X betas from NLF, FLAME shape from Pixel3DMM);
+   fused clips are fitted alone, each with its own identity (not pooled per signer).
 
 The fused parameters become ``Track.init`` (what ``L_reg`` pulls toward) and the identity the starting
 identity of the refinement.
