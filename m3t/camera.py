@@ -44,13 +44,14 @@ class Camera:
 def project(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
     """Project world points ``(..., K, 3)`` to pixels ``(..., K, 2)``.
 
-    rotation (3, 3), translation (3,), intrinsics (4,) = (fx, fy, cx, cy). Points behind the camera are
-    clamped to a small positive depth so gradients stay finite.
+    rotation (3, 3), translation (3,), intrinsics (4,) = (fx, fy, cx, cy); or one camera per leading index:
+    (..., 3, 3), (..., 3), (..., 4). Points behind the camera are clamped to a small positive depth so
+    gradients stay finite.
     """
-    cam = points @ rotation.T + translation  # (..., K, 3)
+    cam = points @ rotation.transpose(-1, -2) + translation[..., None, :]  # (..., K, 3)
     depth = cam[..., 2:3].clamp(min=1e-3)
     uv = cam[..., :2] / depth
-    return uv * intrinsics[:2] + intrinsics[2:]
+    return uv * intrinsics[..., None, :2] + intrinsics[..., None, 2:]
 
 
 def camera_tensors(camera: Camera, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

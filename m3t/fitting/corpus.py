@@ -209,12 +209,8 @@ def fit_key(track_path: Path, outputs: TrackerOutputs | None, ctx: FitContext) -
 
 def _fit(clip: Clip, track: Track, outputs: TrackerOutputs | None, ctx: FitContext):
     """(FitResult, initialisation record) for one clip."""
-    if media_kind(clip) == "synthetic":
-        return fit_track(track, ctx.body, ctx.job.fitting), {"init_source": "simulated tracker initialisation"}
-    if outputs is None:
-        return fit_track(track, ctx.body, ctx.job.fitting), {"init_source": "rest pose: fusion.use_external is off"}
-    if not outputs.any():
-        return fit_track(track, ctx.body, ctx.job.fitting), {"init_source": NO_EXTERNAL}
+    if media_kind(clip) == "synthetic" or outputs is None or not outputs.any():
+        return fit_track(track, ctx.body, ctx.job.fitting), {"init_source": _init_source(clip, outputs)}
     try:
         fused = initialise_from_trackers(ctx.body, outputs, track.num_frames, ctx.job.fusion)
     except FusionUnsupported as exc:
@@ -305,6 +301,7 @@ def process_clip(clip: Clip, ctx: FitContext) -> ClipOutcome:
 
 
 def _init_source(clip: Clip, outputs: TrackerOutputs | None) -> str:
+    """Where a clip fitted from its 2D track alone started (synthetic, or real without usable outputs)."""
     if media_kind(clip) == "synthetic":
         return "simulated tracker initialisation"
     return "rest pose: fusion.use_external is off" if outputs is None else NO_EXTERNAL
@@ -394,11 +391,6 @@ def plan_batches(clips: list[Clip], batch_clips: int) -> list[list[Clip]]:
     for clip in clips:
         by_signer.setdefault(clip.signer, []).append(clip)
     return [group[i:i + batch_clips] for group in by_signer.values() for i in range(0, len(group), batch_clips)]
-
-
-def fit_one(job: FitJob, clip: Clip) -> ClipOutcome:
-    """One clip processed with this process' context (picklable arguments)."""
-    return process_clip(clip, worker_context(job))
 
 
 def fit_batch(job: FitJob, clips: list[Clip]) -> list[ClipOutcome]:

@@ -33,7 +33,7 @@ import torch
 
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
-from m3t.camera import look_at
+from m3t.camera import look_at, project
 from m3t.fitting.config import FittingConfig
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
@@ -83,15 +83,6 @@ def acceleration_loss(points: torch.Tensor) -> torch.Tensor:
         return points.new_zeros(())
     acc = (points[2:] - 2 * points[1:-1] + points[:-2]) * 100.0
     return (acc ** 2).sum(-1).mean()
-
-
-def _project(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
-             intrinsics: torch.Tensor) -> torch.Tensor:
-    """:func:`m3t.camera.project` with a camera per frame: points (B, K, 3), rotation (B, 3, 3), translation and
-    intrinsics (B, 3) / (B, 4) -> pixels (B, K, 2)."""
-    cam = points @ rotation.transpose(-1, -2) + translation[:, None]
-    uv = cam[..., :2] / cam[..., 2:3].clamp(min=1e-3)
-    return uv * intrinsics[:, None, :2] + intrinsics[:, None, 2:]
 
 
 class _Pack:
@@ -180,8 +171,7 @@ def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage:
         return
     if cfg.solver != "lbfgs":
         raise ValueError(f"fitting.solver is {cfg.solver!r}; expected 'lbfgs' or 'adam'")
-    budget = iterations
-    if budget <= 0:
+    if iterations <= 0:
         return
     opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.lbfgs_round, history_size=cfg.lbfgs_history,
                             line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
@@ -195,8 +185,8 @@ def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage:
         return loss
 
     previous = float("inf")
-    while len(evaluations) < budget:
-        opt.param_groups[0]["max_eval"] = min(budget - len(evaluations), cfg.lbfgs_round * 5 // 4)
+    while len(evaluations) < iterations:
+        opt.param_groups[0]["max_eval"] = min(iterations - len(evaluations), cfg.lbfgs_round * 5 // 4)
         opt.step(closure)
         if project_bounds is not None:
             project_bounds()
@@ -287,7 +277,7 @@ def fit_tracks(
         return out
 
     def uv_of(points: torch.Tensor) -> torch.Tensor:
-        return _project(points, sixd_to_matrix(cam_rot)[pack.clip], cam_trans[pack.clip], frame_intrinsics)
+        return project(points, sixd_to_matrix(cam_rot)[pack.clip], cam_trans[pack.clip], frame_intrinsics)
 
     def keypoints_uv(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         ident = identity if layout.identity_bounds is None else identity.clamp(*layout.identity_bounds)

@@ -136,38 +136,32 @@ def _jpe_row(x, y, i, out):
 
 
 @_jit()
-def _pa_prepare(pred, gt):
-    """Centred points: pred (T1, K, 3), gt (K, 3, T2), and their sums of squares (T1,), (T2,)."""
-    t1, k, _ = pred.shape
-    t2 = gt.shape[0]
-    xs = np.empty((t1, k, 3))
-    for i in range(t1):
+def _centred(points):
+    """(T, K, 3) points centred per frame, and each frame's sum of squares (T,) (points, then axes)."""
+    t, k, _ = points.shape
+    out = np.empty((t, k, 3))
+    for i in range(t):
         for a in range(3):
             mean = 0.0
             for p in range(k):
-                mean += pred[i, p, a]
+                mean += points[i, p, a]
             mean /= k
             for p in range(k):
-                xs[i, p, a] = pred[i, p, a] - mean
-    ys = np.empty((k, 3, t2))
-    for j in range(t2):
-        for a in range(3):
-            mean = 0.0
-            for p in range(k):
-                mean += gt[j, p, a]
-            mean /= k
-            for p in range(k):
-                ys[p, a, j] = gt[j, p, a] - mean
-    var_s = np.zeros(t1)
-    for i in range(t1):
+                out[i, p, a] = points[i, p, a] - mean
+    var = np.zeros(t)
+    for i in range(t):
         for p in range(k):
             for a in range(3):
-                var_s[i] += xs[i, p, a] * xs[i, p, a]
-    var_t = np.zeros(t2)
-    for p in range(k):
-        for a in range(3):
-            for j in range(t2):
-                var_t[j] += ys[p, a, j] * ys[p, a, j]
+                var[i] += out[i, p, a] * out[i, p, a]
+    return out, var
+
+
+@_jit()
+def _pa_prepare(pred, gt):
+    """Centred points: pred (T1, K, 3), gt (K, 3, T2), and their sums of squares (T1,), (T2,)."""
+    xs, var_s = _centred(pred)
+    centred_gt, var_t = _centred(gt)
+    ys = np.ascontiguousarray(centred_gt.transpose(1, 2, 0))
     return xs, ys, var_s, var_t
 
 
