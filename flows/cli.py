@@ -2,7 +2,12 @@
 
     m3t params --preset paper [--write]   print (or write to params.yaml) a preset merged over params.yaml
     m3t fit-corpus [--max-clips N]        run the fit-corpus flow once, locally (temporary Prefect server)
-    m3t serve [--port 4200]               start a Prefect server on 127.0.0.1 and serve the deployments;
+    m3t up [--prefect-port 4200] [--mlflow-port 5000] [--no-serve] [--host 127.0.0.1] [--run-dir .m3t/run]
+                                          in the background: Prefect server + every deployment served + MLflow UI,
+                                          logs and PIDs in the run directory
+    m3t status                            their URLs and health (non-zero exit when one is down)
+    m3t down                              stop exactly the processes `m3t up` started
+    m3t serve [--port 4200]               the foreground variant of `m3t up`, stopped on Ctrl-C;
                                           then: prefect deployment run fit-corpus/embedded
     m3t ablate-tokenizers [--full] [--dry-run] [--widths ...]
                                           the Tab. 3 sweep: one `dvc exp run --temp -S ...` per setting
@@ -21,7 +26,6 @@ import os
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import yaml
@@ -51,29 +55,84 @@ def _cmd_fit_corpus(args: argparse.Namespace) -> int:
     return 0
 
 
-def _wait_for(url: str, seconds: float) -> None:
-    deadline = time.time() + seconds
-    while time.time() < deadline:
-        try:
-            with urllib.request.urlopen(url, timeout=2) as response:  # noqa: S310 - loopback only
-                if response.status == 200:
-                    return
-        except OSError:
-            time.sleep(1)
-    raise RuntimeError(f"Prefect server did not answer at {url} within {seconds:.0f} s")
-
-
 def _cmd_serve(args: argparse.Namespace) -> int:
-    api = f"http://127.0.0.1:{args.port}/api"
-    env = dict(os.environ, PREFECT_API_URL=api)
-    server = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(args.port)], env=env)
+    """``m3t up`` in the foreground: the same services, stopped together on Ctrl-C."""
+    from flows.services import ServiceError, ServicesConfig, down, up
+
+    cfg = ServicesConfig(run_dir=Path(args.run_dir), params=Path(args.params), prefect_port=args.port,
+                         mlflow_port=args.mlflow_port)
     try:
-        _wait_for(f"{api}/health", 120)
-        print(f"Prefect UI: http://127.0.0.1:{args.port}  —  run: prefect deployment run fit-corpus/embedded")
-        return subprocess.call([sys.executable, "-m", "flows.deploy", "--params", args.params], env=env)
+        up(cfg)
+    except ServiceError as err:
+        print(f"m3t serve: {err}", file=sys.stderr)
+        return 1
+    print(f"Prefect UI http://127.0.0.1:{args.port}, MLflow UI http://127.0.0.1:{args.mlflow_port}; Ctrl-C stops "
+          f"them. Run: PREFECT_API_URL=http://127.0.0.1:{args.port}/api prefect deployment run fit-corpus/embedded")
+    try:
+        while True:
+            time.sleep(1)
+    except KeyboardInterrupt:
+        pass
     finally:
-        server.terminate()
-        server.wait(timeout=30)
+        down(cfg.run_dir)
+    return 0
+
+
+def _print_status(healths: list) -> None:
+    rows = [("service", "pid", "alive", "healthy", "url", "log")]
+    rows += [(h.name, str(h.pid), "yes" if h.alive else "no", "yes" if h.healthy else f"no ({h.detail})", h.url,
+              os.path.relpath(h.log) if h.log.startswith(os.getcwd() + os.sep) else h.log) for h in healths]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[-1])
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from flows.services import ServiceError, ServicesConfig, status, up
+
+    cfg = ServicesConfig(run_dir=Path(args.run_dir), params=Path(args.params), host=args.host,
+                         prefect_port=args.prefect_port, mlflow_port=args.mlflow_port, serve=not args.no_serve,
+                         start_timeout_s=args.timeout)
+    t0 = time.monotonic()
+    try:
+        records = up(cfg)
+    except ServiceError as err:
+        print(f"m3t up: {err}", file=sys.stderr)
+        return 1
+    print(f"up in {time.monotonic() - t0:.1f} s")
+    _print_status(status(cfg.run_dir))
+    prefect = next((r for r in records if r.name == "prefect"), None)
+    if prefect is not None:
+        print(f"run a deployment: PREFECT_API_URL={prefect.url}/api prefect deployment run fit-corpus/embedded")
+    return 0
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from flows.services import ServiceError, status
+
+    try:
+        healths = status(Path(args.run_dir))
+    except ServiceError as err:
+        print(f"m3t status: {err}", file=sys.stderr)
+        return 1
+    if not healths:
+        print(f"no services recorded in {args.run_dir}; start them with `m3t up`")
+        return 1
+    _print_status(healths)
+    return 0 if all(h.healthy for h in healths) else 1
+
+
+def _cmd_down(args: argparse.Namespace) -> int:
+    from flows.services import ServiceError, down
+
+    try:
+        stopped = down(Path(args.run_dir), timeout_s=args.timeout)
+    except ServiceError as err:
+        print(f"m3t down: {err}", file=sys.stderr)
+        return 1
+    if not stopped:
+        print(f"nothing was running (run directory {args.run_dir})")
+    return 0
 
 
 def _cmd_ablate(args: argparse.Namespace) -> int:
@@ -186,8 +245,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", default="default")
     p.add_argument("--max-clips", type=int, default=-1)
     p.set_defaults(func=_cmd_fit_corpus)
-    p = sub.add_parser("serve", help="Prefect server on 127.0.0.1 + deployments")
+    p = sub.add_parser("up", help="start the Prefect server, the deployments and the MLflow UI in the background")
+    p.add_argument("--params", default=argparse.SUPPRESS, help="params.yaml of the MLflow store and the deployments")
+    p.add_argument("--prefect-port", type=int, default=4200)
+    p.add_argument("--mlflow-port", type=int, default=5000)
+    p.add_argument("--host", default="127.0.0.1", help="interface to bind; anything but loopback exposes both "
+                                                         "servers to other machines, without authentication")
+    p.add_argument("--no-serve", action="store_true", help="no deployments, only the two servers")
+    p.add_argument("--run-dir", default=".m3t/run", help="services.json, logs and Prefect's home")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds each service may take to answer")
+    p.set_defaults(func=_cmd_up)
+    p = sub.add_parser("status", help="URLs and health of what `m3t up` started (exit 1 if one is down)")
+    p.add_argument("--run-dir", default=".m3t/run")
+    p.set_defaults(func=_cmd_status)
+    p = sub.add_parser("down", help="stop every process `m3t up` started")
+    p.add_argument("--run-dir", default=".m3t/run")
+    p.add_argument("--timeout", type=float, default=20.0, help="seconds between SIGTERM and SIGKILL")
+    p.set_defaults(func=_cmd_down)
+    p = sub.add_parser("serve", help="`m3t up` in the foreground, stopped on Ctrl-C")
     p.add_argument("--port", type=int, default=4200)
+    p.add_argument("--mlflow-port", type=int, default=5000)
+    p.add_argument("--run-dir", default=".m3t/run")
     p.set_defaults(func=_cmd_serve)
     p = sub.add_parser("ablate-tokenizers", help="run the quantisation ablation sweep (dvc exp run --temp)")
     p.add_argument("--full", action="store_true", help="the whole quantizer x batch x width grid")

@@ -2,7 +2,7 @@
 
 - ``smlm``: token shards -> train-smlm -> generate-smlm -> evaluate-smlm (deployment ``smlm/embedded``);
 - ``evaluate-smlm``: generate + evaluate with the current checkpoint only (deployment
-  ``evaluate-smlm/nightly``, on a cron schedule: re-evaluates whatever checkpoint is in place).
+  ``evaluate-smlm/embedded``; the nightly schedule re-evaluates every model family: ``evaluate/nightly``).
 
 Thin tasks over :mod:`m3t.smlm.pipeline`; training is not retried (a failure there is not transient), the
 generation / evaluation tasks are (they read and write files).

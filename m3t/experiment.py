@@ -6,6 +6,7 @@ workers and tests all land in the same store. Telemetry is switched off before m
 """
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import os
 from collections.abc import Iterator
@@ -20,6 +21,9 @@ TELEMETRY_OFF = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "DVC_NO_ANALYTICS": "1",
 }
+# MLflow 3's UI opens an experiment without this tag on its GenAI pages (traces, an assistant panel); marked as
+# model development it opens on the runs table, where the stages' runs and their ablation axes are.
+EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
 
 
 @dataclass(frozen=True)
@@ -28,6 +32,7 @@ class ExperimentConfig:
     artifact_dir: str = "mlruns"
     experiment: str = "m3t"
     enabled: bool = True
+    dashboard_dir: str = "dashboards/site"  # the static dashboard over this store (dashboards/build.py)
 
 
 def to_dict(obj: Any) -> Any:
@@ -106,9 +111,34 @@ class Run:
             self._mlflow.set_tags(tags)
 
 
+_EXTRA_TAGS: contextvars.ContextVar[dict[str, str]] = contextvars.ContextVar("m3t_run_tags", default={})
+
+
 @contextmanager
-def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: dict[str, str] | None = None) -> Iterator[Run]:
-    """Open an MLflow run named after the stage; yields a :class:`Run` (no-op if ``cfg.enabled`` is false)."""
+def extra_tags(tags: dict[str, str]) -> Iterator[None]:
+    """Add ``tags`` to every run started inside the block (the nightly re-evaluation tags its runs
+    ``scheduled`` this way, without each model family's logger knowing about schedules)."""
+    token = _EXTRA_TAGS.set({**_EXTRA_TAGS.get(), **tags})
+    try:
+        yield
+    finally:
+        _EXTRA_TAGS.reset(token)
+
+
+def run_name(stage: str, variant: str | None = None, tags: dict[str, str] | None = None) -> str:
+    """``stage · variant`` (``· scheduled`` appended for scheduled runs): what the MLflow UI lists."""
+    parts = [stage, *([variant] if variant else [])]
+    if (tags or {}).get("scheduled") == "true":
+        parts.append("scheduled")
+    return " · ".join(parts)
+
+
+@contextmanager
+def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: dict[str, str] | None = None,
+              variant: str | None = None) -> Iterator[Run]:
+    """Open an MLflow run of ``stage`` named ``stage · variant`` and tagged ``stage`` / ``variant`` (plus the
+    caller's tags and those of an enclosing :func:`extra_tags`); yields a :class:`Run` (no-op if ``cfg.enabled``
+    is false)."""
     if not cfg.enabled:
         yield Run(None)
         return
@@ -116,11 +146,33 @@ def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: d
     import mlflow
 
     root = Path(root)
+    # mlflow.set_tracking_uri also writes MLFLOW_TRACKING_URI into os.environ, which tracking_uri() reads as the
+    # user's choice: restored afterwards, or every later run of this process would go to this run's store.
+    outer = os.environ.get("MLFLOW_TRACKING_URI")
     mlflow.set_tracking_uri(tracking_uri(cfg, root))
-    if mlflow.get_experiment_by_name(cfg.experiment) is None:
-        mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri())
+    try:
+        with _open_run(mlflow, cfg, root, stage, tags, variant) as run:
+            yield run
+    finally:
+        if outer is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = outer
+
+
+@contextmanager
+def _open_run(mlflow: Any, cfg: ExperimentConfig, root: Path, stage: str, tags: dict[str, str] | None,
+              variant: str | None) -> Iterator[Run]:
+    experiment = mlflow.get_experiment_by_name(cfg.experiment)
+    if experiment is None:
+        mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri(),
+                                 tags=EXPERIMENT_KIND)
+    elif any(experiment.tags.get(k) != v for k, v in EXPERIMENT_KIND.items()):  # a store made before the tag
+        for key, value in EXPERIMENT_KIND.items():
+            mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, key, value)
     mlflow.set_experiment(cfg.experiment)
-    with mlflow.start_run(run_name=stage, tags={"stage": stage, **(tags or {})}):
+    all_tags = {"stage": stage, **({"variant": variant} if variant else {}), **(tags or {}), **_EXTRA_TAGS.get()}
+    with mlflow.start_run(run_name=run_name(stage, all_tags.get("variant"), all_tags), tags=all_tags):
         yield Run(mlflow)
 
 
@@ -156,3 +208,19 @@ def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None 
                                  run.info.status, dict(run.data.params), dict(run.data.metrics), local,
                                  dict(run.data.tags)))
     return records
+
+
+def metric_histories(cfg: ExperimentConfig, run_id: str, keys: list[str], root: str | Path = ".",
+                     min_points: int = 2) -> dict[str, list[tuple[int, float]]]:
+    """``{key: [(step, value), ...]}`` of the run's metrics logged at ``min_points`` steps or more (training
+    curves), in step order."""
+    disable_telemetry()
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=tracking_uri(cfg, Path(root)))
+    out = {}
+    for key in keys:
+        points = sorted((m.step, m.value) for m in client.get_metric_history(run_id, key))
+        if len(points) >= min_points:
+            out[key] = points
+    return out

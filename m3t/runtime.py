@@ -51,3 +51,17 @@ def distributed_context(device_name: str = "auto") -> DistributedContext:
     if not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return DistributedContext(dist.get_rank(), dist.get_world_size(), device)
+
+
+def jit(**options):
+    """``numba.njit(error_model="numpy", **options)`` with an on-disk cache where one is writable: numba raises
+    at decoration when no cache directory is usable, and the kernel is then compiled once per process instead.
+    The one decorator of the project's compiled kernels (DTW, the mesh rasteriser)."""
+    import numba
+
+    def wrap(func):
+        try:
+            return numba.njit(cache=True, error_model="numpy", **options)(func)
+        except RuntimeError:
+            return numba.njit(cache=False, error_model="numpy", **options)(func)
+    return wrap

@@ -35,3 +35,11 @@ def truth(fx):
     from fusion_fixtures import T, ground_truth
 
     return ground_truth(fx, frames=T, seed=7)
+
+
+@pytest.fixture(scope="session")
+def tiny_workspace(body, tmp_path_factory):
+    """A tiny pipeline's workspace with real MLflow runs (:mod:`tiny_pipeline`): tokenizers, judge, SMLM."""
+    from tiny_pipeline import build_workspace
+
+    return build_workspace(tmp_path_factory.mktemp("workspace"), body)

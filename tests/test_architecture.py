@@ -33,8 +33,9 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("models", ("m3t.smlm", "m3t.sgsa", "m3t.slr", "m3t.backtranslation")),
     ("config", ("m3t.config",)),
     ("stages", ("m3t.stages",)),
+    ("dashboards", ("dashboards",)),
     ("flows", ("flows",)),
-    ("surfaces", ("flows.cli", "dashboards")),
+    ("surfaces", ("flows.cli", "flows.services")),
 )
 
 
@@ -142,8 +143,8 @@ def stage_modules() -> dict[str, str]:
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     out = {}
     for name, stage in stages.items():
-        found = re.search(r"-m (m3t\.stages\.\w+)", stage["cmd"])
-        assert found, f"dvc.yaml stage {name}: cmd {stage['cmd']!r} does not run a m3t.stages module"
+        found = re.search(r"-m ((?:m3t\.stages|dashboards)\.\w+)", stage["cmd"])
+        assert found, f"dvc.yaml stage {name}: cmd {stage['cmd']!r} does not run a m3t.stages (or dashboards) module"
         out[name] = found.group(1)
     return out
 
@@ -187,3 +188,19 @@ def test_training_stages_depend_on_every_training_corpus():
             if shard not in [str(d) for d in stages[name]["deps"]]:
                 missing.append(f"{name}: {shard}")
     assert not missing, "dvc.yaml deps miss the shards of data.train_corpora / slr.corpus:\n" + "\n".join(missing)
+
+
+def test_no_flow_module_shadows_an_installed_package():
+    """Prefect runs a served flow with its file's folder on sys.path: a ``flows/tokenizers.py`` there hides
+    Hugging Face's ``tokenizers`` from transformers, and every served flow that loads the SMLM fails on import."""
+    import importlib.util
+    import sys
+
+    saved = list(sys.path)
+    try:
+        sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() not in (ROOT, ROOT / "flows")]
+        clashes = [p.stem for p in sorted((ROOT / "flows").glob("*.py"))
+                   if p.stem != "__init__" and importlib.util.find_spec(p.stem) is not None]
+    finally:
+        sys.path[:] = saved
+    assert not clashes, f"flows/ modules named like installed packages (rename them): {clashes}"

@@ -19,6 +19,7 @@ from m3t.metrics import kernels
 from m3t.metrics.dtw import dtw_batch, jpe_distance_matrix
 from m3t.metrics.motion import MotionMetricsConfig, _batched_pa, _validated, evaluate_pairs
 from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
+from m3t.runtime import jit
 
 LENGTHS = [(1, 1), (1, 6), (5, 1), (7, 7), (9, 4), (6, 13), (31, 24)]
 T = torch.as_tensor
@@ -212,7 +213,8 @@ def test_without_numba_the_numba_backend_names_the_package_and_torch_still_score
 
 def test_kernels_compile_uncached_where_no_cache_directory_is_writable(monkeypatch):
     """A read-only install and home: numba finds no cache locator and raises at decoration; ``_jit`` then
-    compiles without a cache (simulated: permissions do not stop root, who runs CI containers)."""
+    compiles without a cache (simulated: permissions do not stop root, who runs CI containers). ``jit`` is the
+    one decorator of the DTW kernels and the mesh rasteriser."""
     def unwritable(self):
         raise PermissionError(13, "Permission denied", self.get_cache_path())
 
@@ -224,4 +226,4 @@ def test_kernels_compile_uncached_where_no_cache_directory_is_writable(monkeypat
 
     with pytest.raises(RuntimeError, match="no locator available"):
         numba.njit(cache=True)(add_one)
-    assert kernels._jit()(add_one)(41) == 42
+    assert jit()(add_one)(41) == 42

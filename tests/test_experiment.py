@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dashboards.report import render
-from m3t.experiment import ExperimentConfig, RunRecord, absolute_uri, fetch_runs, start_run
+from m3t.experiment import (EXPERIMENT_KIND, ExperimentConfig, absolute_uri, extra_tags, fetch_runs, metric_histories,
+                            start_run)
 
 
 def test_absolute_uri(tmp_path):
@@ -27,8 +27,45 @@ def test_run_is_logged_and_fetched(tmp_path):
     assert runs[0].metrics == {"reproj_px_mean": 1.5}  # NaN is not logged
     assert runs[0].params == {"fitting.iterations": "3"}
     assert (runs[0].artifact_dir / "fit_vs_ground_truth" / "fit.png").exists()
-    page = render(runs)
-    assert "fit-corpus" in page and "1.5" in page and "data:image/png;base64" in page
+
+
+def test_runs_are_named_tagged_and_the_experiment_opens_on_runs(tmp_path):
+    """Run names ``stage · variant`` (``· scheduled`` inside :func:`extra_tags`), the variant and caller's tags on
+    the run, per-epoch histories readable back, and the experiment marked as model development (MLflow 3's UI
+    otherwise opens it on the GenAI traces page)."""
+    import mlflow
+
+    cfg = ExperimentConfig(tracking_uri="sqlite:///store.db", artifact_dir="artifacts", experiment="t")
+    with start_run(cfg, "train-tokenizers", root=tmp_path, tags={"quantizer": "fsq"}, variant="FSQ width 32") as run:
+        for epoch in (1, 2, 3):
+            run.log_metrics({"body/train_loss": 1.0 / epoch}, step=epoch)
+        run.log_metrics({"body/utilisation_pct": 50.0})
+    with extra_tags({"scheduled": "true"}):
+        with start_run(cfg, "evaluate-smlm", root=tmp_path, variant="production only"):
+            pass
+    with start_run(cfg, "evaluate-smlm", root=tmp_path):  # the extra tags end with their block
+        pass
+    runs = fetch_runs(cfg, root=tmp_path)
+    names = [r.tags["mlflow.runName"] for r in runs]
+    assert names == ["evaluate-smlm", "evaluate-smlm · production only · scheduled", "train-tokenizers · FSQ width 32"]
+    assert runs[1].tags["scheduled"] == "true" and "scheduled" not in runs[0].tags
+    assert runs[2].tags["variant"] == "FSQ width 32" and runs[2].tags["quantizer"] == "fsq"
+    curves = metric_histories(cfg, runs[2].run_id, sorted(runs[2].metrics), root=tmp_path)
+    assert curves == {"body/train_loss": [(1, 1.0), (2, 0.5), (3, 1.0 / 3)]}  # one-point metrics are no curve
+    experiment = mlflow.MlflowClient(tracking_uri=absolute_uri(cfg.tracking_uri, tmp_path)).get_experiment_by_name("t")
+    assert all(experiment.tags.get(k) == v for k, v in EXPERIMENT_KIND.items())
+
+
+def test_a_store_made_before_the_kind_tag_is_marked(tmp_path):
+    import mlflow
+
+    uri = absolute_uri("sqlite:///store.db", tmp_path)
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    client.create_experiment("old", artifact_location=(tmp_path / "a").as_uri())
+    assert "mlflow.experimentKind" not in client.get_experiment_by_name("old").tags
+    with start_run(ExperimentConfig(tracking_uri="sqlite:///store.db", experiment="old"), "x", root=tmp_path):
+        pass
+    assert client.get_experiment_by_name("old").tags["mlflow.experimentKind"] == "custom_model_development"
 
 
 def test_disabled_tracking_is_a_noop(tmp_path):
@@ -37,8 +74,3 @@ def test_disabled_tracking_is_a_noop(tmp_path):
         assert run.run_id is None
     assert not list(tmp_path.iterdir())
 
-
-def test_dashboard_without_runs():
-    assert "No runs yet" in render([])
-    record = RunRecord("abc", "stage", 0, "FINISHED", {}, {"m": 2.0}, Path("/nonexistent"))
-    assert "stage" in render([record])

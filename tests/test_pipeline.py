@@ -143,7 +143,7 @@ def test_dvc_repro_twice_is_a_noop(tmp_path):
     """The real dvc.yaml on a tiny params.yaml: the second `dvc repro` runs no stage."""
     repo = tmp_path / "repo"
     repo.mkdir()
-    for name in ("dvc.yaml", "m3t"):
+    for name in ("dvc.yaml", "m3t", "dashboards"):
         src = ROOT / name
         (shutil.copytree if src.is_dir() else shutil.copy)(src, repo / name)
     anny_cache = str((ROOT / ".cache" / "anny").resolve())  # reuse the built model, not a second 1-min build

@@ -76,8 +76,15 @@ def test_evaluate_scores_every_system_with_the_same_judge(trained, body):
     assert len(rows) - 1 == 2 * sum(summary[f"{s}/clips"] for s in params.sgsa_evaluate.splits)
     assert (out / "backtranslation.csv").read_text().startswith("system,split,clip_id")
     assert (out / "attention.png").stat().st_size > 0
-    videos = sorted((out / "videos").glob("*.gif"))
+    videos = sorted((out / "videos").glob("*.mp4"))
     assert len(videos) == params.sgsa_evaluate.render_clips
+    # every produced clip (U >= 1 frames) of every trained system as a skeleton .pose: the graph's joints
+    from pose_format import Pose
+
+    for system in ("pt", "sgsa"):
+        poses = sorted((out / "pose" / system).glob("*.pose"))
+        assert len(poses) == sum(summary[f"{split}/clips"] for split in params.sgsa_evaluate.splits)
+        assert tuple(Pose.read(poses[0].read_bytes()).header.components[0].points) == body_graph().joints
 
 
 def test_ground_truth_counter_gives_the_reference_length(trained, body):

@@ -73,6 +73,9 @@ def test_smlm_flow_trains_generates_evaluates_and_tabulates(tokens, shards_dir, 
             assert math.isfinite(summary[key]) and summary[key] >= 0, key
         poses = sorted((tmp_path / "gen" / "synthetic" / "pose").glob("*.pose"))
         assert poses and Pose.read(poses[0].read_bytes()).body.data.shape[2] == 576  # pose-format's holistic: 33 + 468 + 2 x 21 + 33 world
+        # the first render_clips generated clips: body surface side by side, and the skeleton overlay
+        renders = sorted(p.name for p in (tmp_path / "gen" / "synthetic" / "renders").iterdir())
+        assert renders == [f"{poses[0].stem}.mp4", f"{poses[0].stem}_skeleton.mp4"]
     assert 0 <= summary["translation_bleu4"] <= 100
     # every test clip is scored: none cut or unscorable here, and each back-translated by the judge
     assert summary["clips_scored"] == len(test_ids) and summary["clips_unscorable"] == 0

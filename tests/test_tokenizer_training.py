@@ -192,7 +192,7 @@ def test_ddp_on_gloo_keeps_ranks_in_sync(shards_dir, tmp_path):
 def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, body):
     from prefect.testing.utilities import prefect_test_harness
 
-    from flows.tokenizers import train_tokenizers_flow
+    from flows.train_tokenizers import train_tokenizers_flow
 
     params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
         "body": {"cache_dir": str(ROOT / ".cache" / "anny")},
@@ -215,7 +215,7 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
     for group in report:
         assert (tmp_path / "models" / "tokenizers" / f"{group}.pt").exists()
         assert (tmp_path / "models" / "tokenizers" / "plots" / f"tokens_{group}.png").exists()
-        assert (tmp_path / "models" / "tokenizers" / "plots" / f"reconstruction_{group}.gif").exists()
+        assert (tmp_path / "models" / "tokenizers" / "plots" / f"reconstruction_{group}.mp4").exists()
     for split in SPLITS:
         shard = read_token_shard(tmp_path / "tokens" / "synthetic" / f"{split}.parquet")
         fitted = read_shard(shards_dir / f"{split}.parquet").clips

@@ -158,7 +158,8 @@ def train_and_log(model_cfg: BackTranslationConfig, train_cfg: BackTranslationTr
     """:func:`run_train_backtranslation` inside an MLflow run (params, per-epoch records, the written files)."""
     layout = model_cfg.input_layout if skeleton is None else f"skeleton ({skeleton.graph.name})"
     stage = STAGE if skeleton is None else SKELETON_STAGE
-    with start_run(experiment, stage, tags={"input_layout": layout}) as run:
+    tags = {"input_layout": layout, "corpus": ",".join(data.train_corpora), "seed": str(train_cfg.seed)}
+    with start_run(experiment, stage, tags=tags, variant=layout) as run:
         run.log_params(section_params(backtranslation=model_cfg, backtranslation_train=train_cfg, data=data))
         report = run_train_backtranslation(
             model_cfg, train_cfg, data, progress=progress, skeleton=skeleton,
@@ -197,7 +198,7 @@ def load_models(models_dir: str | Path, device: str = "cpu") -> dict[str, Loaded
 
 def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, Mapping[str, np.ndarray]]],
                   references: Mapping[str, str], beam_size: int = 1, length_penalty: float = 1.0,
-                  device: str = "cpu", batch_size: int = 16) -> BackTranslationReport:
+                  device: str = "cpu", batch_size: int = 16, progress: bool = False) -> BackTranslationReport:
     """Back-translate ``clips_params`` (clip id -> (sign language, {modality: (T, D) parameters})) with the
     language's model of ``models_dir`` and score them against ``references`` (clip id -> spoken sentence),
     tokenised by the model's text rule, under definition "slt". T = 0 is the empty sentence (scored 0)."""
@@ -212,9 +213,11 @@ def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, 
                              "language")
         if not references[cid].strip():
             raise ValueError(f"clip {cid!r}: empty reference sentence; nothing to score against")
+    from tqdm.auto import tqdm
+
     ids = list(clips_params)
     hypotheses, refs, frames = {}, {}, {}
-    for language, loaded in models.items():
+    for language, loaded in tqdm(models.items(), desc="back-translate", unit="language", disable=not progress):
         rows = [cid for cid in ids if clips_params[cid][0] == language]
         if not rows:
             continue
@@ -278,7 +281,7 @@ def evaluate_and_log(model_cfg: BackTranslationConfig, data: DataConfig, experim
     report = run_evaluate_backtranslation(model_cfg, data, split)
     tags = {"source": "ground-truth", "split": split, "text_metric_definition": SLT_DEFINITION,
             "beam_size": str(model_cfg.beam_size)}
-    with start_run(experiment, "evaluate-backtranslation", tags=tags) as run:
+    with start_run(experiment, "evaluate-backtranslation", tags=tags, variant=f"ground truth, {split}") as run:
         run.log_params(section_params(backtranslation=model_cfg, data=data))
         run.log_metrics(report.summary)
         for name in ("metrics.json", "per_clip.csv", "skipped.jsonl"):

@@ -147,7 +147,8 @@ def log_fit_corpus(experiment, logged_params: dict[str, Any], report: FitCorpusR
     from m3t.render.mesh import log_fitted_frame
     from m3t.render.skeleton import render_fit_comparison
 
-    with start_run(experiment, "fit-corpus", tags={"corpus": corpus}) as run:
+    tags = {"corpus": corpus, "body_model": getattr(body, "name", "") if body is not None else ""}
+    with start_run(experiment, "fit-corpus", tags=tags, variant=corpus) as run:
         run.log_params(logged_params)
         run.log_metrics(report.summary)
         run.log_metrics(report.run_stats)

@@ -33,32 +33,21 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from m3t.metrics.dtw import DTWResult, _as_cost
 from m3t.metrics.procrustes import ILL_CONDITIONED, NEWTON_MAX_ITERATIONS, NEWTON_RESIDUAL, NEWTON_TOLERANCE
+from m3t.runtime import jit
 
 JACOBI_SWEEPS = 30  # cyclic sweeps of the 4x4 fallback; converges quadratically, ~6 suffice
 PA_WORK = 6.0  # a PA cell costs ~6 JPE cells of as many points (250 x 250 x 21: 4.7 vs 0.84 ms): job order
 JPE, PA = 0, 1  # job kinds
 
 
-def _jit(**options):
-    """``numba.njit`` with an on-disk cache where one is writable; numba raises at decoration when no cache
-    directory is usable, and then the kernel is compiled once per process instead."""
-    def wrap(func):
-        try:
-            return numba.njit(cache=True, error_model="numpy", **options)(func)
-        except RuntimeError:
-            return numba.njit(cache=False, error_model="numpy", **options)(func)
-    return wrap
-
-
 # ---------------------------------------------------------------- DP and backtrack
 
 
-@_jit()
+@jit()
 def _sweep_row(table, i):
     """Accumulate row ``i`` of a (T1, T2) table in place (rows above already accumulated)."""
     t2 = table.shape[1]
@@ -72,7 +61,7 @@ def _sweep_row(table, i):
         row[j] += min(min(prev[j], prev[j - 1]), row[j - 1])
 
 
-@_jit()
+@jit()
 def _backtrack(table, path):
     """Optimal path of an accumulated (T1, T2) table into ``path`` (>= T1 + T2 - 1, 2), from (0, 0); returns L."""
     t1, t2 = table.shape
@@ -103,7 +92,7 @@ def _backtrack(table, path):
 # ---------------------------------------------------------------- cost rows
 
 
-@_jit()
+@jit()
 def _jpe_prepare(pred, gt, m0, m1):
     """Root-relative measured points: pred (T1, K', 3) and gt as (K', 3, T2) so rows run over contiguous j."""
     t1, t2, kk = pred.shape[0], gt.shape[0], m1 - m0
@@ -120,7 +109,7 @@ def _jpe_prepare(pred, gt, m0, m1):
     return x, y
 
 
-@_jit()
+@jit()
 def _jpe_row(x, y, i, out):
     """Row ``i`` of the JPE cost matrix into ``out`` (T2,): mean over K' of |x[i, k] - y[k, :, j]|."""
     kk, t2 = y.shape[0], y.shape[2]
@@ -135,7 +124,7 @@ def _jpe_row(x, y, i, out):
         out[j] = out[j] / kk
 
 
-@_jit()
+@jit()
 def _centred(points):
     """(T, K, 3) points centred per frame, and each frame's sum of squares (T,) (points, then axes)."""
     t, k, _ = points.shape
@@ -156,7 +145,7 @@ def _centred(points):
     return out, var
 
 
-@_jit()
+@jit()
 def _pa_prepare(pred, gt):
     """Centred points: pred (T1, K, 3), gt (K, 3, T2), and their sums of squares (T1,), (T2,)."""
     xs, var_s = _centred(pred)
@@ -165,7 +154,7 @@ def _pa_prepare(pred, gt):
     return xs, ys, var_s, var_t
 
 
-@_jit()
+@jit()
 def _top_eigen_jacobi(n):
     """Largest eigenvalue and its unit eigenvector of a symmetric 4x4 matrix, by cyclic Jacobi rotations."""
     a = n.copy()
@@ -207,7 +196,7 @@ def _top_eigen_jacobi(n):
     return a[top, top], v[:, top].copy()
 
 
-@_jit()
+@jit()
 def _store_rotation(srot, j, w, x, y, z, scale):
     """Column ``j`` of (9, T2) ``srot`` = scale x the rotation of the unit quaternion (w, x, y, z), row-major."""
     ww, xx, yy, zz = w * w, x * x, y * y, z * z
@@ -217,7 +206,7 @@ def _store_rotation(srot, j, w, x, y, z, scale):
     srot[6, j], srot[7, j], srot[8, j] = 2 * (xz - wy) * scale, 2 * (yz + wx) * scale, (ww - xx - yy + zz) * scale
 
 
-@_jit()
+@jit()
 def _pa_row(xs, ys, var_s, var_t, i, m0, m1, work, out):
     """Row ``i`` of the PA cost matrix into ``out`` (T2,).
 
@@ -367,7 +356,7 @@ def _pa_row(xs, ys, var_s, var_t, i, m0, m1, work, out):
 # ---------------------------------------------------------------- one job, without the GIL
 
 
-@_jit(nogil=True)
+@jit(nogil=True)
 def _point_job(pred, gt, kind, m0, m1, accumulate, path):
     """(T1, T2) cost matrix of one job; with ``accumulate`` swept in place row by row into the DP table and
     backtracked into ``path`` (>= T1 + T2 - 1, 2). Returns the table and the path length L (0 without)."""
@@ -389,7 +378,7 @@ def _point_job(pred, gt, kind, m0, m1, accumulate, path):
     return table, _backtrack(table, path) if accumulate else 0
 
 
-@_jit(nogil=True)
+@jit(nogil=True)
 def _cost_job(cost, path):
     """DP + backtrack of a given (T1, T2) cost matrix (left unchanged): raw cost and path length."""
     table = cost.copy()

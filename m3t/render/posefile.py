@@ -30,6 +30,15 @@ as a dot at the canvas' corner in ``PoseVisualizer``; drop them first to hide it
 Points the body model has no correspondence for get confidence 0 and coordinates 0, which pose-format reads
 as masked points.
 
+Skeletons (:func:`export_skeleton_pose`): a skeletal production model (SGSA, Progressive Transformers) emits
+the joints of a :class:`m3t.body.skeleton.SkeletonGraph`, not body-model parameters, so there is no holistic
+header to fill. Its clips are written as a ``.pose`` file of one component named after the graph
+(``body``, ``holistic+face``...), whose points are the graph's joint names (``body:neck``, ``left_hand:wrist``,
+``face:61``...) and whose limbs are the graph's edges, on the same front-view canvas as above; missing (NaN)
+joints get confidence 0. pose-format's ``normalize`` knows only its own headers: pass the shoulders by name,
+``pose.normalize(pose.header.normalization_info(p1=(name, "body:left_shoulder"), p2=(name,
+"body:right_shoulder")))``.
+
 Axis legend: T frames, K points.
 """
 from __future__ import annotations
@@ -43,6 +52,7 @@ import torch
 
 from m3t.atomic import write_bytes
 from m3t.body.protocol import BodyModel, as_tensors
+from m3t.body.skeleton import SkeletonGraph
 
 # Correspondence part -> .pose component; pose-format's holistic component order, world landmarks last.
 COMPONENTS = {"pose": "POSE_LANDMARKS", "face": "FACE_LANDMARKS", "left_hand": "LEFT_HAND_LANDMARKS",
@@ -197,6 +207,44 @@ def export_pose(path: str | Path, body: BodyModel, params: dict[str, np.ndarray]
     identical file is left untouched)."""
     buffer = io.BytesIO()
     holistic_pose(body, params, identity, fps, width, height).write(buffer)
+    path = Path(path)
+    write_bytes(path, buffer.getvalue())
+    return path
+
+
+REGION_RGB = {"body": (80, 80, 80), "left_hand": (214, 39, 40), "right_hand": (31, 119, 180),
+              "face": (44, 160, 44)}  # point colours of a skeleton .pose, by the joint's region
+
+
+def skeleton_pose(points: np.ndarray, graph: SkeletonGraph, fps: float, width: int = 1024, height: int = 1024):
+    """(T, J, 3) metres of ``graph``'s joints (protocol frame) as a ``pose_format.Pose`` of one component (see
+    the module docstring)."""
+    from pose_format import Pose
+    from pose_format.numpy.pose_body import NumPyPoseBody
+    from pose_format.pose_header import PoseHeader, PoseHeaderComponent, PoseHeaderDimensions
+
+    if not (0 < width <= 65535 and 0 < height <= 65535):
+        raise ValueError(f".pose export: canvas {width} x {height} px; each side must be in 1..65535")
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 3 or points.shape[1:] != (len(graph.joints), 3) or not len(points):
+        raise ValueError(f".pose export of skeleton {graph.name!r}: points of shape {points.shape}, expected "
+                         f"(T > 0, {len(graph.joints)}, 3)")
+    seen = np.isfinite(points).all(-1)  # (T, J)
+    placed = np.where(seen[..., None], points, 0.0)
+    canvas = np.where(seen[..., None], front_view(placed, seen, np.ones(len(graph.joints), bool), width, height), 0.0)
+    colors = [REGION_RGB[j.split(":", 1)[0]] for j in graph.joints]
+    component = PoseHeaderComponent(graph.name, list(graph.joints), [tuple(e) for e in graph.edges], colors, "XYZC")
+    header = PoseHeader(0.2, PoseHeaderDimensions(width, height, 0), [component])
+    return Pose(header, NumPyPoseBody(fps=float(fps), data=canvas[:, None].astype(np.float32),
+                                      confidence=seen[:, None].astype(np.float32)))
+
+
+def export_skeleton_pose(path: str | Path, points: np.ndarray, graph: SkeletonGraph, fps: float,
+                         width: int = 1024, height: int = 1024) -> Path:
+    """Write (T, J, 3) skeleton joints as a one-component ``.pose`` file (atomically; an identical file is left
+    untouched)."""
+    buffer = io.BytesIO()
+    skeleton_pose(points, graph, fps, width, height).write(buffer)
     path = Path(path)
     write_bytes(path, buffer.getvalue())
     return path

@@ -1,5 +1,7 @@
-"""Animated comparison of a clip and its tokenizer reconstruction: skeleton + face landmarks, projected
-through the clip's camera, original in orange and reconstruction in blue, written as a GIF.
+"""Animated comparison of a clip and its tokenizer reconstruction (or generated motion): skeleton + face
+landmarks, projected through the clip's camera, original in orange and reconstruction in blue, overlaid in one
+panel (small reconstruction errors show as a colour fringe), drawn with OpenCV and written as an H.264 MP4
+(a GIF when the target ends in ``.gif``, :mod:`m3t.render.video`).
 
 Axis legend: T frames, J joints, K face landmarks.
 """
@@ -13,6 +15,7 @@ import torch
 from m3t.body.metric_sets import metric_joints
 from m3t.body.protocol import BodyModel, Correspondence, as_tensors
 from m3t.render.skeleton import project_points, skeleton_edges
+from m3t.render.video import SUBPIXEL, held, progress_label, side_by_side, write_video
 from m3t.shards.schema import FittedClip
 
 
@@ -34,17 +37,16 @@ def _points(body: BodyModel, params: dict, identity: np.ndarray, sets: list) -> 
 
 def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, np.ndarray], path: str | Path,
                           title: str = "", max_frames: int = 120,
-                          labels: tuple[str, str] = ("fitted", "reconstructed")) -> Path:
-    """Write an animated GIF of ``fitted`` (orange) against the same clip with ``recon`` streams (blue).
+                          labels: tuple[str, str] = ("fitted", "reconstructed"), size: int = 400,
+                          progress: bool = False) -> Path:
+    """Write a video (MP4, or GIF by suffix) of ``fitted`` (orange) against the same clip with ``recon`` streams
+    (blue), on a panel whose longer side is ``size`` pixels; returns ``path`` (written atomically).
 
     ``recon`` may replace every stream with a sequence of another length (generated motion): each side then
-    holds its last frame once it ends.
+    holds its last frame once it ends, its legend entry saying so.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.animation import FuncAnimation, PillowWriter
+    import cv2
+    from tqdm.auto import tqdm
 
     joints = metric_joints(body)
     face = face_landmarks(body)
@@ -59,37 +61,36 @@ def render_reconstruction(body: BodyModel, fitted: FittedClip, recon: dict[str, 
         views.append([project_points(p, fitted.camera) if has_camera else -p[..., [0, 2]].numpy() * [-1, 1] for p in points])
     lengths = [view[0].shape[0] for view in views]
     frames = min(max(lengths), max_frames)
-    fig, ax = plt.subplots(figsize=(4, 4))
-    if has_camera:
-        ax.set_xlim(0, fitted.camera["width"])
-        ax.set_ylim(fitted.camera["height"], 0)
+    if has_camera:  # the camera's image, scaled to the panel
+        low, high = np.zeros(2), np.array([fitted.camera["width"], fitted.camera["height"]], dtype=np.float64)
     else:
         every = np.concatenate([v.reshape(-1, 2) for view in views for v in view])
-        low, high = every.min(0) - 0.05, every.max(0) + 0.05
-        ax.set_xlim(low[0], high[0])
-        ax.set_ylim(high[1], low[1])
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    artists = []
-    for (joint_uv, *face_uv), colour in zip(views, ("tab:orange", "tab:blue")):
-        lines = [ax.plot([], [], color=colour, lw=1.2)[0] for _ in edges]
-        dots = ax.scatter([], [], s=1, color=colour) if face_uv else None
-        artists.append((joint_uv, face_uv[0] if face_uv else None, lines, dots))
-    ax.legend([artists[0][2][0], artists[1][2][0]], list(labels), fontsize=7, loc="lower left")
-    ax.set_title(title or fitted.clip.id, fontsize=8)
+        low, high = np.nanmin(every, 0) - 0.05, np.nanmax(every, 0) + 0.05
+    zoom = size / max(float((high - low).max()), 1e-9)
+    width, height = (max(1, round(float(d) * zoom)) for d in high - low)
+    colours = ((255, 127, 14), (31, 119, 180))  # matplotlib's tab:orange, tab:blue (RGB)
 
-    def draw(t: int):
-        for (joint_uv, face_uv, lines, dots), n in zip(artists, lengths):
-            i = min(t, n - 1)
-            for line, (a, b) in zip(lines, edges):
-                line.set_data(joint_uv[i, [a, b], 0], joint_uv[i, [a, b], 1])
-            if dots is not None:
-                dots.set_offsets(face_uv[i])
-        return []
+    def pixels(uv: np.ndarray) -> np.ndarray:
+        return np.round((uv - low) * zoom * (1 << SUBPIXEL)).astype(np.int64)  # OpenCV fixed point
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    FuncAnimation(fig, draw, frames=frames).save(path, writer=PillowWriter(fps=max(1, int(round(fitted.clip.fps)))))
-    plt.close(fig)
-    return path
+    def pictures():
+        for t in tqdm(range(frames), desc=f"render {Path(path).name}", disable=not progress, leave=False):
+            panel = np.full((height, width, 3), 255, dtype=np.uint8)
+            for (joint_uv, *face_uv), colour, n in zip(views, colours, lengths):
+                k = held(n, t)
+                finite = np.isfinite(joint_uv[k]).all(1)
+                ends = pixels(np.where(finite[:, None], joint_uv[k], 0.0))
+                for a, b in edges:
+                    if finite[a] and finite[b]:
+                        cv2.line(panel, tuple(map(int, ends[a])), tuple(map(int, ends[b])), colour, 1, cv2.LINE_AA,
+                                 SUBPIXEL)
+                if face_uv:
+                    for point in pixels(face_uv[0][k][np.isfinite(face_uv[0][k]).all(1)]):
+                        cv2.circle(panel, tuple(map(int, point)), 1 << SUBPIXEL, colour, -1, cv2.LINE_AA, SUBPIXEL)
+            for row, (label, colour, n) in enumerate(zip(labels, colours, lengths)):
+                cv2.putText(panel, progress_label(label, n, t), (6, height - 8 - 16 * (1 - row)),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+            yield side_by_side([panel], [title or fitted.clip.id])
+
+    fps = fitted.clip.fps if fitted.clip.fps and fitted.clip.fps > 0 else 25.0
+    return write_video(pictures(), path, fps)

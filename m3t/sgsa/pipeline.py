@@ -11,7 +11,9 @@
   The same judges score the ground truth (the upper bound) and, on the split generate-smlm produced, the M3T
   SMLM's motion posed into the same skeleton (``smlm``): one table, one corpus, one split, one judge.
   Writes ``<metrics>/sgsa/metrics.json`` (``<system>/<split>/<metric>``), ``per_clip.csv``,
-  ``backtranslation.csv``, side-by-side skeleton videos and an attention-map picture.
+  ``backtranslation.csv``, ``pose/<system>/<clip>.pose`` (every clip each trained system produced, a skeleton
+  ``.pose``: :func:`m3t.render.posefile.export_skeleton_pose`), side-by-side skeleton videos
+  ``videos/<clip>.mp4`` (reference / PT / SGSA / SMLM) and an attention-map picture.
 """
 from __future__ import annotations
 
@@ -92,8 +94,9 @@ def train_and_log(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body_cfg: BodyCon
                   experiment: ExperimentConfig, progress: bool = True) -> dict[str, float]:
     """:func:`run_train` inside an MLflow run (params, per-epoch curves per system, the written files)."""
     body = load_body_model(body_cfg)
-    tags = {"variant": model_cfg.variant, "systems": ",".join(cfg.systems), "skeleton": model_cfg.skeleton}
-    with start_run(experiment, STAGE, tags=tags) as run:
+    tags = {"systems": ",".join(cfg.systems), "skeleton": model_cfg.skeleton, "body_model": body_cfg.model,
+            "seed": str(cfg.seed)}
+    with start_run(experiment, STAGE, tags=tags, variant=model_cfg.variant) as run:
         run.log_params(section_params(sgsa=model_cfg, sgsa_train=cfg, data=data))
         report = run_train(model_cfg, cfg, body, data, progress=progress,
                            on_epoch=lambda system, record, epoch: run.log_metrics(
@@ -142,6 +145,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
                  judge: BackTranslationConfig | None = None, progress: bool = True) -> dict[str, float]:
     """Score every trained system (and the SMLM and the ground truth) on ``cfg.splits``; see the module docstring."""
     from m3t.body.skeleton import normalise
+    from m3t.render.posefile import export_skeleton_pose
     from m3t.render.skeleton_video import render_attention_map, render_skeleton_video
     from m3t.runtime import choose_device
 
@@ -176,6 +180,10 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
             summary.update({f"{name}/{split}/{k}": v for k, v in report.summary.items()})
             per_clip.extend({"system": name, "split": split, **row} for row in report.per_clip)
             produced_by[name] = {s.clip_id: produced_points(frames[s.clip_id], graph, s.clip.scale) for s in samples}
+            for s in samples:
+                if len(produced_by[name][s.clip_id]):
+                    export_skeleton_pose(out / "pose" / name / f"{s.clip_id}.pose", produced_by[name][s.clip_id],
+                                         graph, s.clip.fitted.clip.fps or 25.0)
             if cfg.backtranslate and sentences:
                 judged = _judge(data.skeleton_judge_dir,
                                 {s.clip_id: (s.language, frames[s.clip_id][:, :-1]) for s in sentences}, texts, judge)
@@ -221,7 +229,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
     write_jsonl(out / "skipped.jsonl", skipped)
     for cid, sequences in videos.items():
         fps = next(s.clip.fitted.clip.fps for s in samples if s.clip_id == cid) if samples else 25.0
-        render_skeleton_video(sequences, graph, out / "videos" / f"{cid}.gif", fps=fps, title=cid)
+        render_skeleton_video(sequences, graph, out / "videos" / f"{cid}.mp4", fps=fps, title=cid, progress=progress)
     attention = next((s for s in systems if systems[s].model.cfg.decoder_layers > 0), None)
     if attention is not None and shown:
         loaded = systems[attention]
@@ -258,14 +266,14 @@ def evaluate_and_log(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body_cfg: B
     summary = run_evaluate(model_cfg, cfg, load_body_model(body_cfg), data, judge)
     trained = data.sgsa_dir / checkpoint_name("sgsa")
     seed = load_sgsa(trained).train_config.get("seed", "") if trained.exists() else ""
-    tags = {"variant": model_cfg.variant, "counter": cfg.counter, "splits": ",".join(cfg.splits), "seed": str(seed),
+    tags = {"counter": cfg.counter, "splits": ",".join(cfg.splits), "seed": str(seed), "body_model": body_cfg.model,
             "text_metric_definition": SLT_DEFINITION, "motion_metric_definition": "soke-dtw (skeleton)"}
-    with start_run(experiment, "evaluate-sgsa", tags=tags) as run:
+    with start_run(experiment, "evaluate-sgsa", tags=tags, variant=model_cfg.variant) as run:
         run.log_params(section_params(sgsa=model_cfg, sgsa_evaluate=cfg, data=data))
         run.log_metrics({k: v for k, v in summary.items() if v == v and abs(v) != float("inf")})
         out = data.metrics("sgsa")
         for name in ("metrics.json", "per_clip.csv", "backtranslation.csv"):
             run.log_artifact(out / name)
-        for path in sorted((out / "videos").glob("*.gif")) + sorted(out.glob("attention.png")):
+        for path in sorted((out / "videos").glob("*.mp4")) + sorted(out.glob("attention.png")):
             run.log_artifact(path, "renders")
     return summary

@@ -169,7 +169,9 @@ def train_and_log(cfg: SLRConfig, train_cfg: SLRTrainConfig, body_cfg: BodyConfi
                   experiment: ExperimentConfig, corpus: str | None = None, progress: bool = True) -> dict[str, float]:
     body = load_body_model(body_cfg) if cfg.trim.enabled else None
     corpus = corpus or cfg.corpus
-    with start_run(experiment, "train-slr", tags={"corpus": corpus, "variants": ",".join(train_cfg.variants)}) as run:
+    tags = {"corpus": corpus, "variants": ",".join(train_cfg.variants), "body_model": body_cfg.model,
+            "seed": str(train_cfg.seed)}
+    with start_run(experiment, "train-slr", tags=tags, variant=corpus) as run:
         run.log_params(section_params(slr=cfg, slr_train=train_cfg, data=data))
         report = run_train_slr(cfg, train_cfg, body, data, corpus, progress=progress,
                                on_epoch=lambda v, record, epoch: run.log_metrics(
@@ -286,8 +288,9 @@ def evaluate_and_log(eval_cfg: SLREvaluateConfig, body_cfg: BodyConfig, data: Da
     result = run_evaluate_slr(eval_cfg, body, data, corpus)
     out = data.metrics("slr")
     reasons = {ev.subsets_reason for ev in result.evaluations.values() if ev.subsets_reason}
-    tags = {"split": eval_cfg.split, "corpus": result.corpus, "subsets_reason": " ".join(sorted(reasons))}
-    with start_run(experiment, "evaluate-slr", tags=tags) as run:
+    tags = {"split": eval_cfg.split, "corpus": result.corpus, "subsets_reason": " ".join(sorted(reasons)),
+            "body_model": body_cfg.model}
+    with start_run(experiment, "evaluate-slr", tags=tags, variant=result.corpus) as run:
         run.log_params(section_params(slr_evaluate=eval_cfg))
         run.log_params({f"{v}.slr_train.{k}": x for v, cfg in result.train_configs.items() for k, x in cfg.items()})
         run.log_metrics({k: v for k, v in result.summary.items() if v == v and abs(v) != float("inf")})

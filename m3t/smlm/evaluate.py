@@ -11,7 +11,7 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -67,9 +67,18 @@ class SMLMEvaluator:
     def motion_params(self, generated: GeneratedMotion) -> dict[str, np.ndarray]:
         return decode_streams(self.tokenizers, generated.tokens)
 
-    def generate(self, model: SignMotionLM) -> dict[str, GeneratedMotion]:
+    def _batches(self, desc: str, progress: bool) -> Iterator[int]:
+        from tqdm.auto import tqdm
+
+        starts = range(0, len(self.examples), self.batch_size)
+        with tqdm(total=len(self.examples), desc=desc, unit="clip", disable=not progress) as bar:
+            for i in starts:
+                yield i
+                bar.update(min(self.batch_size, len(self.examples) - i))
+
+    def generate(self, model: SignMotionLM, progress: bool = False) -> dict[str, GeneratedMotion]:
         out = {}
-        for i in range(0, len(self.examples), self.batch_size):
+        for i in self._batches("generate", progress):
             chunk = self.examples[i: i + self.batch_size]
             for example, g in zip(chunk, generate_motion(model, self.vocab, [e.text for e in chunk],
                                                          [e.language for e in chunk], truncate_text=True)):
@@ -116,10 +125,10 @@ class SMLMEvaluator:
     def __call__(self, model: SignMotionLM) -> dict[str, float]:
         return self.evaluate(model).summary
 
-    def translate(self, model: SignMotionLM) -> dict[str, str]:
+    def translate(self, model: SignMotionLM, progress: bool = False) -> dict[str, str]:
         """Ground-truth motion tokens of every evaluation clip -> text."""
         out = {}
-        for i in range(0, len(self.examples), self.batch_size):
+        for i in self._batches("translate", progress):
             chunk = self.examples[i: i + self.batch_size]
             for example, text in zip(chunk, translate(model, self.vocab, [e.motion for e in chunk],
                                                       [e.language for e in chunk])):

@@ -9,7 +9,9 @@ fitted shards of ``data.train_corpora`` (trained jointly; checkpoint selected on
   ``<models>/smlm/smlm.pt``, ``metrics.json`` and ``skipped.jsonl``.
 - :func:`run_generate`: every clip of ``smlm_generate.split``: text -> motion tokens (greedy, KV cache) and
   ground-truth motion tokens -> text; writes ``generated.parquet``, ``translations.jsonl``,
-  ``pose/<clip>.pose`` and ``renders/<clip>.gif`` into ``data.generated``.
+  ``pose/<clip>.pose`` and, for the first ``smlm_generate.render_clips`` clips, ``renders/<clip>.mp4`` (the
+  body surface, reference / generated side by side) and ``renders/<clip>_skeleton.mp4`` (their skeletons and
+  face points overlaid) into ``data.generated``.
 - :func:`evaluate_and_log`: scores what generation wrote (no model run): DTW metrics through the one motion
   scorer, BLEU-4 / ROUGE-L of the SMLM's own translations, and (``smlm_generate.backtranslate``) the
   generated motion of every sentence clip through the frozen back-translation judge (``bt/slt/...``, SL-T
@@ -34,7 +36,7 @@ from m3t.backtranslation.data import skip_reason
 from m3t.backtranslation.pipeline import BackTranslationReport, backtranslate, per_clip_csv
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
-from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.experiment import ExperimentConfig, section_params, start_run, to_dict
 from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.runtime import DistributedContext, distributed_context
@@ -138,8 +140,9 @@ def train_and_log(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, body_cfg: BodyCon
     body = load_body_model(body_cfg)
     if not dist_ctx.is_main:
         return run_train_smlm(model_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False)
-    tags = {"translation_objective": str(cfg.translation_objective), "d_model": str(model_cfg.d_model)}
-    with start_run(experiment, "train-smlm", tags=tags) as run:
+    tags = {"translation_objective": str(cfg.translation_objective), "d_model": str(model_cfg.d_model),
+            "body_model": body_cfg.model, "corpus": ",".join(data.train_corpora), "seed": str(cfg.seed)}
+    with start_run(experiment, "train-smlm", tags=tags, variant=variant_name(to_dict(cfg))) as run:
         run.log_params(section_params(smlm=model_cfg, smlm_train=cfg, data=data))
         report = run_train_smlm(model_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=progress,
                                 on_epoch=lambda record, epoch: run.log_metrics(record, step=epoch))
@@ -173,6 +176,8 @@ def evaluator_for(cfg: GenerateConfig, data: DataConfig, body: BodyModel, device
 def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progress: bool = True) -> dict[str, float]:
     from tqdm.auto import tqdm
 
+    from m3t.render.mesh import clip_vertices
+    from m3t.render.mesh_video import render_mesh_video
     from m3t.render.posefile import export_pose
     from m3t.render.reconstruction import render_reconstruction
 
@@ -180,8 +185,8 @@ def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progres
     loaded, evaluator, info, skipped = setup.loaded, setup.evaluator, setup.info, setup.skipped + setup.cut
     out = data.generated
     out.mkdir(parents=True, exist_ok=True)
-    generated = evaluator.generate(loaded.model)
-    translations = evaluator.translate(loaded.model)
+    generated = evaluator.generate(loaded.model, progress)
+    translations = evaluator.translate(loaded.model, progress)
     clips = []
     for example in evaluator.examples:
         g = generated[example.clip_id]
@@ -201,8 +206,13 @@ def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progres
         if cfg.export_pose:
             export_pose(out / "pose" / f"{example.clip_id}.pose", body, params, ref.identity, ref.clip.fps)
         if rendered < cfg.render_clips:
-            render_reconstruction(body, ref, params, out / "renders" / f"{example.clip_id}.gif",
-                                  title=f"{example.clip_id} ({example.language})", labels=("fitted", "generated"))
+            title = f"{example.clip_id} ({example.language})"
+            render_mesh_video({"reference": clip_vertices(body, ref.params, ref.identity),
+                               "generated": clip_vertices(body, params, ref.identity)}, body.faces,
+                              out / "renders" / f"{example.clip_id}.mp4", fps=ref.clip.fps or 25.0, title=title,
+                              progress=progress)
+            render_reconstruction(body, ref, params, out / "renders" / f"{example.clip_id}_skeleton.mp4",
+                                  title=title, labels=("fitted", "generated"), progress=progress)
             rendered += 1
     return {"clips": float(len(clips)), "skipped": float(len(skipped)),
             "stopped_rate": float(sum(generated[e.clip_id].stopped for e in evaluator.examples) / max(len(clips), 1))}
@@ -281,16 +291,16 @@ def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, Gener
 def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, experiment: ExperimentConfig,
                      judge: BackTranslationConfig | None = None) -> dict[str, float]:
     report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg), judge)
-    tags = {"variant": variant_name(train_config), "split": cfg.split,
-            "translation_objective": str(train_config.get("translation_objective", True))}
+    tags = {"split": cfg.split, "translation_objective": str(train_config.get("translation_objective", True)),
+            "body_model": body_cfg.model, "seed": str(train_config.get("seed", ""))}
     if cfg.backtranslate:
         tags["text_metric_definition"] = SLT_DEFINITION
-    with start_run(experiment, "evaluate-smlm", tags=tags) as run:
+    with start_run(experiment, "evaluate-smlm", tags=tags, variant=variant_name(train_config)) as run:
         run.log_params({f"smlm_train.{k}": v for k, v in train_config.items()})
         run.log_metrics({k: v for k, v in report.summary.items() if v == v and abs(v) != float("inf")})
         for name in ("metrics.json", "per_clip.csv", "backtranslation.csv"):
             if (data.metrics("smlm") / name).exists():
                 run.log_artifact(data.metrics("smlm") / name)
-        for gif in sorted((data.generated / "renders").glob("*.gif")):
-            run.log_artifact(gif, "renders")
+        for video in sorted((data.generated / "renders").glob("*.mp4")):
+            run.log_artifact(video, "renders")
     return report.summary

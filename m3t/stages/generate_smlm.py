@@ -1,5 +1,6 @@
 """generate-smlm: the trained SMLM on ``smlm_generate.split`` -> generated motion tokens, translations, ``.pose``
-files and side-by-side skeleton GIFs in ``data.generated`` (:func:`m3t.smlm.pipeline.generate`).
+files, side-by-side body-surface videos (reference / generated) and skeleton videos (MP4) in ``data.generated``
+(:func:`m3t.smlm.pipeline.generate`).
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """train-tokenizers: fitted shards of ``data.train_corpora`` -> one FSQ-VAE (or VQ-VAE baseline) per modality
-group -> checkpoints, codebook statistics, token histograms, reconstruction GIFs, an MLflow run
+group -> checkpoints, codebook statistics, token histograms, reconstruction videos (MP4), an MLflow run
 (:func:`m3t.tokenizers.pipeline.train_and_log`).
 
 ``python -m m3t.stages.train_tokenizers``, or ``torchrun --nproc_per_node N -m m3t.stages.train_tokenizers`` for DDP.

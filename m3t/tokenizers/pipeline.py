@@ -1,5 +1,6 @@
 """The train-tokenizers run: fitted shards of ``data.train_corpora`` -> one FSQ-VAE (or VQ-VAE baseline) per
-modality group -> checkpoints, codebook statistics, token histograms and reconstruction GIFs, logged to MLflow.
+modality group -> checkpoints, codebook statistics, token histograms and reconstruction videos (MP4), logged to
+MLflow.
 
 For each group of ``tokenizer_train.groups`` (``body``, ``hand``, ``face``): train on the train splits of all
 training corpora (+ face-only shards for ``face``), select by validation vertex error on their dev splits
@@ -84,13 +85,16 @@ def group_report(group: str, checkpoint: Path, splits: dict[str, list[FittedClip
     stats, counts = codebook_report(model, group, splits)
     plot_token_histogram(counts, f"{group} ({model.cfg.quantizer}, {model.codebook_size} codes), test",
                          plots_dir / f"tokens_{group}.png")
+    # the counts themselves, for the dashboard's interactive histograms (FSQ vs VQ)
+    write_json(plots_dir / f"tokens_{group}.json", {"group": group, "quantizer": model.cfg.quantizer,
+                                                    "codebook_size": model.codebook_size, "counts": counts.tolist()})
     test = ReconstructionProbe(body, group, splits["test"], max_frames=max_test_frames).measure(model)
     report = {**stats, **{f"test_{k}": v for k, v in test.items()}, "codebook_size": float(model.codebook_size)}
     if splits["test"]:
         clip = splits["test"][0]
         recon = {s.modality: from_canonical(reconstruct_clip(model, to_canonical(np.asarray(clip.params[s.modality]), s)),
                                             s).numpy() for s in GROUPS[group]}
-        render_reconstruction(body, clip, recon, plots_dir / f"reconstruction_{group}.gif",
+        render_reconstruction(body, clip, recon, plots_dir / f"reconstruction_{group}.mp4",
                               title=f"{clip.clip.id}: {group} tokens ({model.cfg.quantizer})")
     return report
 
@@ -152,8 +156,10 @@ def train_and_log(tok_cfg: TokenizerConfig, cfg: TokenizerTrainConfig, body_cfg:
     body = load_body_model(body_cfg)
     if not dist_ctx.is_main:
         return run_train_tokenizers(tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False)
-    tags = {"quantizer": tok_cfg.quantizer, "width": str(tok_cfg.width), "batch_size": str(cfg.batch_size)}
-    with start_run(experiment, "train-tokenizers", tags=tags) as run:
+    tags = {"quantizer": tok_cfg.quantizer, "width": str(tok_cfg.width), "batch_size": str(cfg.batch_size),
+            "body_model": body_cfg.model, "corpus": ",".join(data.train_corpora), "seed": str(cfg.seed)}
+    variant = f"{tok_cfg.quantizer.upper()} width {tok_cfg.width} batch {cfg.batch_size}"
+    with start_run(experiment, "train-tokenizers", tags=tags, variant=variant) as run:
         run.log_params(section_params(body=body_cfg, tokenizer=tok_cfg, tokenizer_train=cfg, data=data))
         report = run_train_tokenizers(
             tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=progress,
@@ -163,5 +169,39 @@ def train_and_log(tok_cfg: TokenizerConfig, cfg: TokenizerTrainConfig, body_cfg:
         run.log_artifact(out_dir / "metrics.json")
         run.log_artifact(out_dir / "rejected.jsonl")
         for plot in sorted((out_dir / "plots").glob("*")):
+            run.log_artifact(plot, "plots")
+    return report
+
+
+def evaluate_and_log(cfg: TokenizerTrainConfig, body_cfg: BodyConfig, data: DataConfig,
+                     experiment: ExperimentConfig) -> dict[str, dict[str, float]]:
+    """Re-evaluate the current tokenizer checkpoints (``<tokenizers_dir>/<group>.pt``) without training: the
+    codebook statistics and test-split vertex errors of :func:`group_report`, written to
+    ``<metrics_dir>/tokenizers`` (the trained folder is a DVC output and stays untouched) and logged as an
+    ``evaluate-tokenizers`` run. Groups without a checkpoint are left out; none at all is an error."""
+    import json
+
+    from m3t.body.factory import load_body_model
+    from m3t.experiment import start_run
+
+    present = [g for g in cfg.groups if (data.tokenizers_dir / f"{g}.pt").exists()]
+    if not present:
+        raise FileNotFoundError(f"no tokenizer checkpoint in {data.tokenizers_dir} (expected "
+                                f"{', '.join(g + '.pt' for g in cfg.groups)}): run the train-tokenizers stage first")
+    rejected_file = data.tokenizers_dir / "rejected.jsonl"
+    rejected = {json.loads(line)["clip_id"] for line in rejected_file.read_text().splitlines() if line.strip()} \
+        if rejected_file.exists() else set()
+    splits = {split: [c for c in read_split(data.shards_dirs, split) if c.clip.id not in rejected] for split in SPLITS}
+    body = load_body_model(body_cfg)
+    out = data.metrics("tokenizers")
+    report = {g: group_report(g, data.tokenizers_dir / f"{g}.pt", splits, body, out / "plots", cfg.val_max_frames)
+              for g in present}
+    write_json(out / "metrics.json", report)
+    quantizer = load_tokenizer(data.tokenizers_dir / f"{present[0]}.pt").model.cfg.quantizer
+    tags = {"quantizer": quantizer, "body_model": body_cfg.model, "corpus": ",".join(data.train_corpora)}
+    with start_run(experiment, "evaluate-tokenizers", tags=tags, variant=quantizer.upper()) as run:
+        run.log_metrics({f"{group}/{k}": v for group, values in report.items() for k, v in values.items()})
+        run.log_artifact(out / "metrics.json")
+        for plot in sorted((out / "plots").glob("*")):
             run.log_artifact(plot, "plots")
     return report

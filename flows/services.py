@@ -1,0 +1,409 @@
+"""The platform's background services: the Prefect server, the served deployments and the MLflow UI.
+
+    m3t up       start them (127.0.0.1 unless ``--host`` says otherwise), each in its own process group, logs and
+                 ``services.json`` (name, pid, pgid, port, url, log, command) in the run directory (``.m3t/run``)
+    m3t status   their URLs and health; non-zero exit when one is down
+    m3t down     stop exactly the processes ``up`` started: every process of each group and the leader's
+                 descendants, SIGTERM then SIGKILL after a timeout, and check that none is left
+
+A service is one process group because both servers fork workers (MLflow's uvicorn, the runner's flow runs): the
+recorded pid alone would leave them behind. A record also keeps the leader's start time, so a pid reused by some
+other program after a reboot is never signalled. POSIX only (process groups, ``/proc`` where there is one).
+"""
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+from m3t.atomic import write_json
+from m3t.experiment import TELEMETRY_OFF, absolute_uri
+
+ORDER = ("prefect", "mlflow", "deployments")  # start order; ``down`` stops in reverse (the runner needs the API)
+STATE_FILE = "services.json"
+LOG_TAIL_LINES = 40
+
+
+class ServiceError(RuntimeError):
+    """A service could not be started or stopped; the message says which and what to do."""
+
+
+@dataclass(frozen=True)
+class ServicesConfig:
+    run_dir: Path = Path(".m3t/run")  # services.json, the logs and (unless PREFECT_HOME is set) Prefect's home
+    params: Path = Path("params.yaml")  # MLflow store (``experiment`` section); the deployments' params_path
+    host: str = "127.0.0.1"  # anything else makes both servers reachable from other machines, unauthenticated
+    prefect_port: int = 4200
+    mlflow_port: int = 5000
+    serve: bool = True  # also serve the deployments (python -m flows.deploy) against the Prefect server
+    start_timeout_s: float = 120.0  # per service, until its health check answers
+    root: Path = Path(".")  # working directory of the services; relative store paths resolve against it
+
+
+@dataclass(frozen=True)
+class Service:
+    """What to start: one command, run as the leader of a new process group."""
+
+    name: str
+    command: tuple[str, ...]
+    env: dict[str, str]
+    url: str  # what a user opens
+    health_url: str
+    port: int | None = None  # checked free before anything starts
+    port_flag: str = ""  # the ``m3t up`` option that moves it
+    requires: str | None = None  # a service that must be healthy before this one starts
+
+
+@dataclass(frozen=True)
+class Running:
+    """A started service, as recorded in services.json."""
+
+    name: str
+    pid: int
+    pgid: int
+    port: int | None
+    url: str
+    health_url: str
+    log: str
+    command: tuple[str, ...]
+    started_at: float  # epoch seconds
+    proc_start: int | None  # the leader's start time in clock ticks (/proc), to tell a reused pid
+
+
+@dataclass(frozen=True)
+class Health:
+    name: str
+    pid: int
+    alive: bool
+    healthy: bool
+    url: str
+    log: str
+    detail: str = ""
+
+
+# --- processes -----------------------------------------------------------------------------------------------
+def _proc_table() -> dict[int, tuple[int, int, str, int]] | None:
+    """pid -> (ppid, pgid, state, start ticks) of every process, or None without /proc."""
+    if not os.path.isdir("/proc/self"):
+        return None
+    table = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()  # the name in (...) may hold spaces
+            except (OSError, IndexError):
+                continue  # exited while we looked
+            table[int(entry)] = (int(fields[1]), int(fields[2]), fields[0], int(fields[19]))
+    return table
+
+
+def _start_ticks(pid: int) -> int | None:
+    table = _proc_table()
+    return table[pid][3] if table and pid in table else None
+
+
+def processes(record: Running, table: dict[int, tuple[int, int, str, int]] | None = None) -> set[int]:
+    """Live (non-zombie) processes of a record: its process group and the leader's descendants."""
+    table = _proc_table() if table is None else table
+    if table is None:  # no /proc: the group as a whole
+        try:
+            os.killpg(record.pgid, 0)
+            return {record.pgid}
+        except (ProcessLookupError, PermissionError):
+            return set()
+    leader = table.get(record.pid)
+    if leader and record.proc_start is not None and leader[3] != record.proc_start:
+        return set()  # the pid now belongs to another program (our group cannot exist while it holds the number)
+    live = {pid for pid, (_, _, state, _) in table.items() if state not in "ZX"}
+    found = {pid for pid in live if table[pid][1] == record.pgid}
+    frontier = [record.pid]
+    while frontier:  # descendants that left the group (a child calling setsid) are still ours
+        parent = frontier.pop()
+        for pid in live:
+            if table[pid][0] == parent and pid not in found:
+                found.add(pid)
+                frontier.append(pid)
+    return found & live
+
+
+def _signal(record: Running, pids: set[int], sig: signal.Signals) -> None:
+    try:
+        os.killpg(record.pgid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def _reap(pid: int) -> None:
+    """Collect the exit status when the caller started the leader itself (else it stays a zombie)."""
+    try:
+        os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        pass
+
+
+def stop(record: Running, timeout_s: float = 20.0) -> bool:
+    """SIGTERM every process of ``record``, SIGKILL what is left after ``timeout_s``; False if none was running."""
+    left = processes(record)
+    if not left:
+        return False
+    for sig, wait in ((signal.SIGTERM, timeout_s), (signal.SIGKILL, 10.0)):
+        _signal(record, left, sig)
+        deadline = time.monotonic() + wait
+        while left and time.monotonic() < deadline:
+            time.sleep(0.1)
+            _reap(record.pid)
+            table = _proc_table()
+            # a member reparented out of sight is still watched by its pid
+            left = processes(record, table) | {pid for pid in left if _alive(pid, table)}
+        if not left:
+            return True
+    raise ServiceError(f"{record.name}: processes {sorted(left)} survived SIGKILL; see `ps -o pid,cmd -g "
+                       f"{record.pgid}`")
+
+
+def _alive(pid: int, table: dict[int, tuple[int, int, str, int]] | None) -> bool:
+    if table is not None:
+        return pid in table and table[pid][2] not in "ZX"
+    try:
+        os.kill(pid, 0)
+        return True
+    except (ProcessLookupError, PermissionError):
+        return False
+
+
+def is_running(record: Running) -> bool:
+    return bool(processes(record))
+
+
+# --- state ---------------------------------------------------------------------------------------------------
+def read_state(run_dir: Path) -> list[Running]:
+    path = Path(run_dir) / STATE_FILE
+    if not path.exists():
+        return []
+    try:
+        rows = json.loads(path.read_text())["services"]
+        return [Running(**{**row, "command": tuple(row["command"])}) for row in rows]
+    except (ValueError, KeyError, TypeError) as err:
+        raise ServiceError(f"{path}: not a services record ({err}); stop the processes it names by hand, "
+                           "then delete it") from err
+
+
+def write_state(run_dir: Path, records: list[Running]) -> None:
+    records = sorted(records, key=lambda r: ORDER.index(r.name) if r.name in ORDER else len(ORDER))
+    write_json(Path(run_dir) / STATE_FILE, {"services": [dataclasses.asdict(r) for r in records]})
+
+
+# --- health --------------------------------------------------------------------------------------------------
+def _http(url: str, body: dict | None = None, timeout: float = 2.0) -> bytes | None:
+    """The response body of a 200 answer, else None."""
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:  # noqa: S310 - our own servers
+            return response.read() if response.status == 200 else None
+    except (OSError, ValueError):
+        return None
+
+
+def _served(record: Running) -> tuple[bool, str]:
+    """The runner is healthy once the Prefect API shows deployments it has polled since it started."""
+    answer = _http(record.health_url, {"limit": 200})
+    if answer is None:
+        return False, "the Prefect API does not answer"
+    polled = [d for d in json.loads(answer) if d.get("status") == "READY" and d.get("last_polled")
+              and datetime.fromisoformat(d["last_polled"]).timestamp() >= record.started_at - 1.0]
+    return bool(polled), f"{len(polled)} deployments polled by this runner"
+
+
+def check(record: Running) -> Health:
+    alive = is_running(record)
+    healthy, detail = False, "not running"
+    if alive and record.name == "deployments":
+        healthy, detail = _served(record)
+    elif alive:
+        healthy = _http(record.health_url) is not None
+        detail = "" if healthy else f"no HTTP 200 from {record.health_url}"
+    return Health(record.name, record.pid, alive, healthy, record.url, record.log, detail)
+
+
+def status(run_dir: Path) -> list[Health]:
+    return [check(r) for r in read_state(run_dir)]
+
+
+def log_tail(path: str | Path, lines: int = LOG_TAIL_LINES) -> str:
+    try:
+        return "\n".join(Path(path).read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"
+
+
+# --- up / down -----------------------------------------------------------------------------------------------
+def is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+def port_free(host: str, port: int) -> bool:
+    """Whether a server could listen on ``host:port`` now (SO_REUSEADDR as servers set it, so TIME_WAIT is free)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+            return True
+        except OSError:
+            return False
+
+
+def plan(cfg: ServicesConfig) -> list[Service]:
+    """The services of ``cfg`` in start order, with their commands and environments."""
+    from m3t.config import load_params
+
+    experiment = load_params(cfg.params).experiment
+    root = Path(cfg.root).resolve()
+    run_dir = (root / cfg.run_dir).resolve()
+    local = "127.0.0.1" if cfg.host in ("0.0.0.0", "::") else cfg.host  # where this machine reaches them
+    local = f"[{local}]" if ":" in local else local
+    prefect, mlflow = f"http://{local}:{cfg.prefect_port}", f"http://{local}:{cfg.mlflow_port}"
+    base = {**TELEMETRY_OFF, **os.environ, "PYTHONUNBUFFERED": "1", "PREFECT_API_URL": f"{prefect}/api",
+            "PREFECT_SERVER_API_HOST": cfg.host, "PREFECT_SERVER_API_PORT": str(cfg.prefect_port)}
+    base.setdefault("PREFECT_HOME", str(run_dir / "prefect"))  # keep tests and fresh clones off ~/.prefect
+    artifacts = (root / experiment.artifact_dir).resolve()
+    python = sys.executable
+    out = [
+        Service("prefect", (python, "-m", "prefect", "server", "start", "--host", cfg.host, "--port",
+                            str(cfg.prefect_port)), base, prefect, f"{prefect}/api/health", cfg.prefect_port,
+                "--prefect-port"),
+        Service("mlflow", (python, "-m", "mlflow", "server", "--host", cfg.host, "--port", str(cfg.mlflow_port),
+                           "--workers", "1", "--backend-store-uri", absolute_uri(experiment.tracking_uri, root),
+                           "--default-artifact-root", artifacts.as_uri(), "--artifacts-destination",
+                           artifacts.as_uri()),
+                {**base, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, mlflow, f"{mlflow}/health",
+                cfg.mlflow_port, "--mlflow-port"),
+    ]
+    if cfg.serve:
+        params = str(Path(cfg.params).resolve())
+        out.append(Service("deployments", (python, "-m", "flows.deploy", "--params", params), base,
+                           f"{prefect}/deployments", f"{prefect}/api/deployments/filter", requires="prefect"))
+    return out
+
+
+def _suggest(host: str, port: int, taken: set[int]) -> str:
+    for candidate in range(port + 1, port + 100):
+        if candidate not in taken and port_free(host, candidate):
+            return f" (for instance {candidate}, free now)"
+    return ""
+
+
+def _check_ports(cfg: ServicesConfig, services: list[Service]) -> None:
+    ports = [s.port for s in services if s.port is not None]
+    if len(set(ports)) < len(ports):
+        raise ServiceError(f"--prefect-port and --mlflow-port are both {ports[0]}: give them different ports")
+    for service in services:
+        if service.port is not None and not port_free(cfg.host, service.port):
+            raise ServiceError(f"port {service.port} is in use (by another program): pass {service.port_flag} N"
+                               + _suggest(cfg.host, service.port, set(ports)))
+
+
+def start(service: Service, run_dir: Path, root: Path = Path(".")) -> tuple[Running, subprocess.Popen]:
+    """Start ``service`` as the leader of a new process group, its output in ``<run_dir>/<name>.log``."""
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log = run_dir / f"{service.name}.log"
+    with open(log, "wb") as fh:
+        proc = subprocess.Popen(service.command, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
+                                env=service.env, cwd=root, start_new_session=True)
+    record = Running(service.name, proc.pid, os.getpgid(proc.pid), service.port, service.url, service.health_url,
+                     str(log), service.command, time.time(), _start_ticks(proc.pid))
+    return record, proc
+
+
+def wait_healthy(record: Running, proc: subprocess.Popen | None, timeout_s: float) -> float:
+    """Seconds from its start until ``record`` answered its health check; ServiceError (with its log's tail)
+    if it exits or does not answer within ``timeout_s`` of this call."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        code = proc.poll() if proc is not None else (None if is_running(record) else "?")
+        if code is not None:
+            raise ServiceError(f"{record.name} exited (code {code}) before answering; the end of {record.log}:\n"
+                               f"{log_tail(record.log)}")
+        if check(record).healthy:
+            return time.time() - record.started_at
+        time.sleep(0.5)
+    raise ServiceError(f"{record.name} did not answer at {record.health_url} within {timeout_s:.0f} s (raise "
+                       f"--timeout if the machine is busy); the end of {record.log}:\n{log_tail(record.log)}")
+
+
+def up(cfg: ServicesConfig, say: Callable[[str], None] = print) -> list[Running]:
+    """Start what is not running yet (ports checked before anything starts), wait until every service is
+    healthy; if one fails, stop what this call started and raise ServiceError."""
+    root = Path(cfg.root).resolve()
+    run_dir = (root / cfg.run_dir).resolve()
+    running = {r.name: r for r in read_state(run_dir) if is_running(r)}
+    wanted = {"prefect": cfg.prefect_port, "mlflow": cfg.mlflow_port}
+    for name, record in running.items():
+        moved = name in wanted and record.port != wanted[name]
+        say(f"{name} is already running at {record.url} (pid {record.pid})"
+            + ("; `m3t down` first to move it to another port" if moved else ""))
+    if "prefect" in running:  # a runner started now must talk to the server that runs
+        cfg = dataclasses.replace(cfg, prefect_port=running["prefect"].port)
+    services = plan(cfg)
+    todo = [s for s in services if s.name not in running]
+    _check_ports(cfg, todo)
+    if not is_loopback(cfg.host) and todo:
+        say(f"warning: --host {cfg.host} makes the Prefect and MLflow servers reachable from other machines, "
+            "without authentication")
+    started: list[tuple[Running, subprocess.Popen]] = []
+    try:
+        for service in todo:
+            if service.requires in running:
+                wait_healthy(running[service.requires], None, cfg.start_timeout_s)
+            record, proc = start(service, run_dir, root)
+            started.append((record, proc))
+            running[service.name] = record
+            write_state(run_dir, list(running.values()))  # at once, so `down` finds it even if `up` dies
+            say(f"{service.name} started (pid {record.pid}), log {record.log}")
+        for record, proc in started:
+            seconds = wait_healthy(record, proc, cfg.start_timeout_s)
+            say(f"{record.name} healthy at {record.url} after {seconds:.1f} s")
+    except BaseException:
+        for record, _ in reversed(started):
+            stop(record)
+            running.pop(record.name)
+        write_state(run_dir, list(running.values()))
+        raise
+    return [running[n] for n in ORDER if n in running]
+
+
+def down(run_dir: Path, timeout_s: float = 20.0, say: Callable[[str], None] = print) -> list[Running]:
+    """Stop every recorded service (reverse start order) and forget them; returns the records it stopped."""
+    records = read_state(run_dir)
+    rank = {n: i for i, n in enumerate(ORDER)}
+    stopped = []
+    for record in sorted(records, key=lambda r: rank.get(r.name, -1), reverse=True):
+        if stop(record, timeout_s):
+            stopped.append(record)
+            say(f"{record.name} stopped (pid {record.pid})")
+        else:
+            say(f"{record.name} was not running")
+    write_state(run_dir, [])
+    return stopped

@@ -1,0 +1,68 @@
+"""The static dashboard: on an empty store it says what to run; on a tiny pipeline's store its tables hold the
+MLflow metrics, its plots and videos are there, and the run picker compares runs."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from dashboards.build import build_dashboard
+from dashboards.html import PAGES, markdown
+from m3t.config import load_params
+from m3t.experiment import fetch_runs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_an_empty_store_shows_what_to_run(tmp_path):
+    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
+        "experiment": {"tracking_uri": f"sqlite:///{tmp_path / 'empty.db'}", "artifact_dir": str(tmp_path / "a")},
+        "data": {"shards_root": str(tmp_path / "shards")}})
+    index = build_dashboard(params, tmp_path / "site")
+    pages = {name: (index.parent / name).read_text() for name, _ in PAGES}
+    assert "No runs in the MLflow store yet" in pages["index.html"] and "dvc repro" in pages["index.html"]
+    assert "no finished evaluate-smlm runs yet" in pages["tables.html"]
+    assert "Not fitted yet" in pages["quality.html"] and "No rendered video yet" in pages["videos.html"]
+    assert all("Traceback" not in text for text in pages.values())
+    assert (index.parent / "assets" / "plotly.min.js").stat().st_size > 1_000_000  # from the wheel, no CDN
+    assert not list(tmp_path.glob("site.*"))  # built aside and renamed: no leftover folder
+
+
+def test_markdown_tables_become_html_tables():
+    text = "Title line\n\n| a | b |\n|---|---|\n| x | 1.50 |\n\n- a note"
+    out = markdown(text, "t")
+    assert '<table id="t">' in out and "<th>a</th>" in out and "<td class=num>1.50</td>" in out
+    assert "<p class=note>Title line</p>" in out and "<li>a note</li>" in out
+
+
+def _table(page: str, table_id: str) -> list[list[str]]:
+    """Rows (header first) of the table with ``table_id``: cell texts."""
+    found = re.search(rf'<table id="{table_id}">(.*?)</table>', page, re.S)
+    assert found, f"no table {table_id}"
+    rows = re.findall(r"<tr>(.*?)</tr>", found.group(1), re.S)
+    return [[re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<t[hd][^>]*>(.*?)</t[hd]>", r, re.S)] for r in rows]
+
+
+def test_a_tiny_pipeline_fills_the_pages(tiny_workspace, tmp_path):
+    params = tiny_workspace.params
+    index = build_dashboard(params, tmp_path / "site")
+    site = index.parent
+    runs = fetch_runs(params.experiment)
+    smlm = next(r for r in runs if r.stage == "evaluate-smlm")
+    rows = _table((site / "tables.html").read_text(), "m3t-tab1-measured")
+    header, values = rows[0], {r[0]: r for r in rows[1:]}
+    row = values[smlm.tags["variant"]]
+    column = header.index("synthetic/ASL-SYN PA body")
+    assert row[column] == f"{smlm.metrics['synthetic/ASL-SYN/dtw_pa_jpe_body_m']:.3f}"
+    tokenizers = next(r for r in runs if r.stage == "train-tokenizers")
+    tab3 = _table((site / "tables.html").read_text(), "m3t-tab3-measured")
+    assert tab3[1][tab3[0].index("util face %")] == f"{tokenizers.metrics['face/utilisation_pct']:.1f}"
+    curves = (site / "curves.html").read_text()
+    assert "train_loss" in curves and 'src="assets/plotly.min.js"' in curves
+    codebooks = (site / "codebooks.html").read_text()
+    assert 'id="utilisation"' in codebooks and 'id="tokens-face"' in codebooks
+    quality = (site / "quality.html").read_text()
+    assert "Not fitted yet" in quality  # the workspace's shards were written directly, without fit-corpus
+    picker = json.loads(re.search(r'<script type="application/json" id="run-data">(.*?)</script>',
+                                  (site / "runs.html").read_text(), re.S).group(1))
+    assert set(picker) == {r.run_id for r in runs} and picker[smlm.run_id]["metrics"] == smlm.metrics

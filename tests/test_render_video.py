@@ -1,0 +1,240 @@
+"""Rendering to video: the MP4 writer (H.264, yuv420p, faststart, atomic), the z-buffer rasteriser, mesh and
+skeleton videos side by side (a finished sequence holds its last frame), skeleton ``.pose`` export, and the
+batched vertices of a clip.
+
+MP4 files are read back with ffmpeg itself (``imageio_ffmpeg.read_frames``: codec, size, frame count) and their
+box order checked as ISO/IEC 14496-12 lays a file out (``ftyp`` first; ``moov``, the index, before ``mdat``, the
+media, when written with ``+faststart``). Skeleton ``.pose`` files are read back with pose-format's own reader.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+
+
+def read_mp4(path) -> tuple[dict, list[np.ndarray]]:
+    """(ffmpeg's metadata, decoded (H, W, 3) uint8 frames)."""
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    width, height = meta["size"]
+    return meta, [np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader]
+
+
+def test_mp4_is_h264_with_every_frame_even_sides_and_the_index_first(tmp_path):
+    from m3t.render.video import write_mp4
+
+    # odd sides (33 x 21) must be padded to 34 x 22, not resized; frames differ so none can be dropped
+    frames = [np.full((21, 33, 3), 30 * i, np.uint8) for i in range(7)]
+    frames[3][:, :10] = (255, 0, 0)
+    path = write_mp4(iter(frames), tmp_path / "clip.mp4", fps=12.5)
+    meta, decoded = read_mp4(path)
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert meta["size"] == (34, 22) and meta["fps"] == pytest.approx(12.5)
+    assert len(decoded) == 7
+    # content survives (lossy: compare means), padding repeats the edge rather than adding black
+    assert abs(decoded[5][:21, :33].mean() - 150) < 3 and abs(decoded[5][21:, 33:].mean() - 150) < 3
+    assert decoded[3][5, 4, 0] > 200 and decoded[3][5, 4, 1] < 60
+    data = path.read_bytes()
+    assert data[4:8] == b"ftyp" and 0 < data.find(b"moov") < data.find(b"mdat")
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+
+
+def test_failure_mid_stream_leaves_the_old_file_and_no_temporary(tmp_path):
+    from m3t.render.video import write_mp4
+
+    target = tmp_path / "clip.mp4"
+    target.write_bytes(b"previous")
+
+    def frames():
+        for i in range(3):
+            yield np.zeros((16, 16, 3), np.uint8)
+        raise RuntimeError("renderer failed at frame 3")
+
+    with pytest.raises(RuntimeError, match="frame 3"):
+        write_mp4(frames(), target)
+    assert target.read_bytes() == b"previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+    with pytest.raises(ValueError, match="frame 1: shape"):
+        write_mp4([np.zeros((16, 16, 3), np.uint8), np.zeros((16, 18, 3), np.uint8)], tmp_path / "new.mp4")
+    with pytest.raises(ValueError, match="no frame"):
+        write_mp4([], tmp_path / "new.mp4")
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+
+
+def pixel_centres_inside(corners: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool, brute force: pixel centres on the inner side of all three edges of a triangle."""
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    sides = []
+    for k in range(3):
+        (ax, ay), (bx, by) = corners[k], corners[(k + 1) % 3]
+        sides.append((bx - ax) * (ys - ay) - (by - ay) * (xs - ax))
+    sides = np.stack(sides)
+    return (sides >= 0).all(0) | (sides <= 0).all(0)
+
+
+def test_rasteriser_fills_the_triangle_and_the_nearer_triangle_wins(tmp_path):
+    from m3t.render.raster import rasterise
+
+    corners = np.array([[10.2, 8.7], [90.4, 12.1], [20.3, 85.9]])
+    screen = np.column_stack([corners, np.full(3, 5.0)])
+    one = rasterise(screen, np.array([[0, 1, 2]]), 100, 100)
+    expected = pixel_centres_inside(corners, 100, 100)
+    assert expected.sum() > 2500 and (one.mask == expected).all()
+    assert np.isclose(one.depth[one.mask], 5.0).all() and np.isinf(one.depth[~one.mask]).all()
+    assert (one.shade[one.mask] > 0.3).all()  # facing the viewer: lit, never below the ambient term
+
+    # two overlapping triangles, the nearer (depth 1) listed first or last: it must win wherever both cover
+    near = np.column_stack([corners, np.full(3, 1.0)])
+    far = np.column_stack([corners + [15.0, 5.0], np.full(3, 9.0)])
+    for order in ((near, far), (far, near)):
+        raster = rasterise(np.concatenate(order), np.array([[0, 1, 2], [3, 4, 5]]), 100, 100)
+        near_index = 0 if order[0] is near else 1
+        both = expected & pixel_centres_inside(corners + [15.0, 5.0], 100, 100)
+        assert both.sum() > 1000
+        assert (raster.face[both] == near_index).all() and np.isclose(raster.depth[both], 1.0).all()
+        only_far = pixel_centres_inside(corners + [15.0, 5.0], 100, 100) & ~expected
+        assert (raster.face[only_far] == 1 - near_index).all()
+
+
+def test_rasteriser_closes_a_cube_without_gaps():
+    """A unit cube seen face on (12 triangles, winding mixed): its front square is covered entirely, by the
+    front face's two triangles only."""
+    from m3t.render.raster import rasterise
+
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    screen = corners * [40.0, 40.0, 1.0] + [20.0, 20.0, 0.0]  # x, y pixels; z depth (front face at z = 0)
+    raster = rasterise(screen, faces, 80, 80)
+    square = np.zeros((80, 80), bool)
+    square[20:60, 20:60] = True
+    assert (raster.mask == square).all()
+    front = [k for k, f in enumerate(faces) if (corners[f][:, 2] == 0).all()]
+    assert set(np.unique(raster.face[square])) == set(front)
+
+
+def tall_triangle(frames: int, up: str) -> np.ndarray:
+    """(T, 3, 3) a triangle 1.7 m tall and 0.4 m wide at its base, apex up, moving 15 cm along x per frame."""
+    base = np.array([[-0.2, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.0, 1.7]])  # protocol frame: Z up
+    sway = np.zeros((frames, 1, 3))
+    sway[:, 0, 0] = 0.15 * np.arange(frames)
+    verts = base[None] + sway
+    return verts if up == "z" else verts[..., [0, 2, 1]] * [1, 1, -1]  # Y up, facing +Z
+
+
+def test_mesh_frames_put_up_axis_up_from_the_data():
+    from m3t.render.mesh_video import front_views, render_mesh_frame
+
+    faces = np.array([[0, 1, 2]])
+    pictures = {}
+    for up in ("z", "y"):
+        verts = tall_triangle(4, up)
+        view = front_views({"a": verts}, 64, visible_height=1.0)["a"]
+        pictures[up] = render_mesh_frame(verts[0], faces, view)
+    covered = (pictures["z"] != 255).any(-1)
+    rows = np.flatnonzero(covered.any(1))
+    widths = covered.sum(1)[rows]
+    assert widths[0] < widths[-1] / 4  # apex at the top of the picture, base at the bottom
+    assert (pictures["z"] == pictures["y"]).all()
+
+
+def test_mesh_video_plays_panels_together_and_holds_the_shorter_one(tmp_path):
+    from m3t.render.mesh_video import render_mesh_video
+    from m3t.render.video import LABEL_HEIGHT
+
+    faces = np.array([[0, 1, 2]])
+    long, short = tall_triangle(8, "z"), tall_triangle(3, "z")
+    path = render_mesh_video({"reference": long, "generated": short}, faces, tmp_path / "m.mp4", fps=10, size=64,
+                             title="clip", visible_height=1.0)
+    meta, decoded = read_mp4(path)
+    assert len(decoded) == 8 and meta["size"] == (64 + 4 + 64, 2 * LABEL_HEIGHT + 64)
+    body = [f[2 * LABEL_HEIGHT:].astype(int) for f in decoded]
+    left, right = [b[:, :64] for b in body], [b[:, 68:] for b in body]
+    # the reference keeps moving; the generated panel holds its third frame from then on
+    assert np.abs(left[7] - left[2]).mean() > 3
+    for t in range(3, 8):
+        assert np.abs(right[t] - right[2]).mean() < 1.5
+    assert np.abs(right[1] - right[2]).mean() > 3
+
+
+def test_mesh_video_through_a_fitted_camera(tmp_path):
+    """Fitting's camera dict (fx, fy, cx, cy, world -> camera rotation / translation, image size): the panel keeps
+    the camera's aspect, scaled so its longer side is ``size``; the triangle lands where the pinhole puts it."""
+    from m3t.render.mesh_video import render_mesh_video
+
+    camera = {"fx": 100.0, "fy": 100.0, "cx": 100.0, "cy": 50.0, "width": 200, "height": 100,
+              "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "translation": [0.0, 0.0, 4.0]}  # 4 m in front, Z up
+    square = np.array([[-0.8, 0.0, -0.8], [0.8, 0.0, -0.8], [0.8, 0.0, 0.8], [-0.8, 0.0, 0.8]])  # 1.6 m, facing -Y
+    verts = np.stack([square, square + [0.0, 0.0, 0.5]])  # the second frame half a metre higher
+    path = render_mesh_video({"fit": verts}, np.array([[0, 1, 2], [0, 2, 3]]), tmp_path / "c.mp4", size=64,
+                             camera=camera)
+    meta, decoded = read_mp4(path)
+    assert meta["size"] == (64, 20 + 32) and len(decoded) == 2
+    # 1.6 m at 4 m through f = 100 px: 40 px of the 200 x 100 image, shown at 64 / 200: 12.8 px, centred
+    for frame, centre_row in zip(decoded, (15.5, 15.5 - 0.5 * 100 / 4 * 0.32)):
+        drawn = (frame[20:] < 200).any(-1)  # (32, 64)
+        rows, cols = np.flatnonzero(drawn.any(1)), np.flatnonzero(drawn.any(0))
+        assert 12 <= rows[-1] - rows[0] + 1 <= 14 and 12 <= cols[-1] - cols[0] + 1 <= 14
+        assert abs((rows[0] + rows[-1]) / 2 - centre_row) <= 1 and abs((cols[0] + cols[-1]) / 2 - 31.5) <= 1
+
+
+def test_skeleton_video_mp4_and_gif(tmp_path):
+    from PIL import Image
+
+    from m3t.body.skeleton import body_graph
+    from m3t.render.skeleton_video import render_skeleton_video
+
+    graph = body_graph()
+    rng = np.random.default_rng(0)
+    ref = rng.normal(scale=0.2, size=(6, len(graph.joints), 3))
+    ref[:, 0] = [0.0, 0.0, 1.5]  # the neck above the mean point: z up
+    gen = ref[:4] + 0.01
+    gen[:, 5] = np.nan  # a missing joint: its limbs are left out, the frame still drawn
+    path = render_skeleton_video({"reference": ref, "sgsa": gen}, graph, tmp_path / "v.mp4", fps=25, size=96)
+    meta, decoded = read_mp4(path)
+    assert meta["codec"] == "h264" and len(decoded) == 6 and meta["size"] == (96 + 4 + 96, 20 + 96)
+    gif = render_skeleton_video({"reference": ref}, graph, tmp_path / "v.gif", size=64)
+    assert Image.open(gif).n_frames == 6
+
+
+def test_skeleton_pose_export_reads_back_with_the_graph_as_component(tmp_path):
+    from pose_format import Pose
+
+    from m3t.body.skeleton import body_graph
+    from m3t.render.posefile import export_skeleton_pose
+
+    graph = body_graph(face_points=True)
+    rng = np.random.default_rng(1)
+    points = rng.normal(scale=0.3, size=(5, len(graph.joints), 3))
+    points[2, 7] = np.nan
+    path = export_skeleton_pose(tmp_path / "pose" / "sgsa" / "clip.pose", points, graph, fps=25.0, width=512,
+                                height=256)
+    pose = Pose.read(path.read_bytes())
+    (component,) = pose.header.components
+    assert component.name == graph.name and tuple(component.points) == graph.joints
+    assert [tuple(limb) for limb in component.limbs] == list(graph.edges) and component.format == "XYZC"
+    assert pose.body.data.shape == (5, 1, len(graph.joints), 3) and pose.body.fps == 25.0
+    conf = np.asarray(pose.body.confidence)
+    assert conf[2, 0, 7] == 0 and conf.sum() == 5 * len(graph.joints) - 1
+    xy = np.asarray(pose.body.data)[..., :2][conf > 0]
+    assert (xy >= 0).all() and (xy[:, 0] <= 512).all() and (xy[:, 1] <= 256).all()
+    # image y is down: a joint higher up (larger Z) has a smaller y
+    top, bottom = np.argmax(points[0, :, 2]), np.argmin(points[0, :, 2])
+    assert pose.body.data[0, 0, top, 1] < pose.body.data[0, 0, bottom, 1]
+
+
+def test_clip_vertices_chunked_equal_one_forward(body):
+    import torch
+
+    from m3t.render.mesh import clip_vertices
+
+    torch.manual_seed(0)
+    params = {k: (v + 0.05 * torch.randn_like(v)).numpy() for k, v in body.rest_params(5).items()}
+    identity = body.default_identity().numpy()
+    chunked = clip_vertices(body, params, identity, chunk=2)
+    with torch.no_grad():
+        whole = body.forward({k: torch.as_tensor(v) for k, v in params.items()}, torch.as_tensor(identity)).vertices
+    assert chunked.shape == (5, whole.shape[1], 3) and chunked.dtype == np.float32
+    np.testing.assert_allclose(chunked, whole.numpy(), atol=1e-5)
