@@ -18,6 +18,7 @@
     m3t sgsa-study [--seeds 0 1 2]        the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
+    m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
 """
 from __future__ import annotations
 
@@ -104,7 +105,19 @@ def _cmd_up(args: argparse.Namespace) -> int:
     prefect = next((r for r in records if r.name == "prefect"), None)
     if prefect is not None:
         print(f"run a deployment: PREFECT_API_URL={prefect.url}/api prefect deployment run fit-corpus/embedded")
+    mlflow = next((r for r in records if r.name == "mlflow"), None)
+    if mlflow is not None:
+        print(f"MLflow runs: {_mlflow_link(args.params, mlflow.url)}")
     return 0
+
+
+def _mlflow_link(params: str, base_url: str) -> str:
+    """The link that opens the experiment on its runs table (MLflow 3.17's UI otherwise lands on GenAI pages)."""
+    from m3t.config import load_params
+    from m3t.experiment import experiment_ui_link
+
+    return experiment_ui_link(load_params(params).experiment, base_url) or (
+        f"{base_url} (no experiment yet; once a stage has run, choose 'Model training' in the side bar)")
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -178,6 +191,15 @@ def _cmd_bt_table(args: argparse.Namespace) -> int:
     experiment = load_params(args.params).experiment
     print(backtranslation_table(fetch_runs(experiment, stage="evaluate-backtranslation"),
                                 fetch_runs(experiment, stage="evaluate-smlm")))
+    return 0
+
+
+def _cmd_dashboard(args: argparse.Namespace) -> int:
+    from dashboards.build import build_dashboard
+    from m3t.config import load_params
+
+    index = build_dashboard(load_params(args.params), args.out)
+    print(f"wrote {index}; open it in a browser")
     return 0
 
 
@@ -278,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_smlm_table)
     p = sub.add_parser("bt-table", help="print Tab. 2 (back-translation, SL-T definition) from MLflow")
     p.set_defaults(func=_cmd_bt_table)
+    p = sub.add_parser("dashboard", help="build the static dashboard over the MLflow store and the DVC metrics")
+    p.add_argument("--out", default=None, help="folder of the site (default: experiment.dashboard_dir)")
+    p.set_defaults(func=_cmd_dashboard)
     p = sub.add_parser("slr-table", help="print Tab. 4 (recognition probe with intervals) from MLflow")
     p.set_defaults(func=_cmd_slr_table)
     p = sub.add_parser("sgsa-sweep", help="SGSA Tab. 1 (L = 0..5) or Tab. 2 (N = inf, 1, 2, 3, 5) by dvc exp, then "

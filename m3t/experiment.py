@@ -21,9 +21,16 @@ TELEMETRY_OFF = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "DVC_NO_ANALYTICS": "1",
 }
-# MLflow 3's UI opens an experiment without this tag on its GenAI pages (traces, an assistant panel); marked as
-# model development it opens on the runs table, where the stages' runs and their ablation axes are.
+# The experiment is model development, not GenAI. MLflow 3.17's UI does not read this tag to pick the landing
+# page (it follows a "workflow type" from the link or the browser's memory, GenAI by default): links to the
+# experiment carry UI_QUERY (:func:`ui_link`), which opens the runs table.
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
+UI_QUERY = "workflowType=machine_learning"
+# A saved runs view written on the experiment (MLflow 3.17's "Views" menu): the runs table with the tags that
+# name the ablation axes as columns, where the default table shows none.
+RUNS_VIEW = "m3t-runs"
+RUNS_VIEW_COLUMNS = ("tags.`stage`", "tags.`variant`", "tags.`corpus`", "tags.`body_model`", "tags.`quantizer`",
+                     "tags.`seed`", "tags.`scheduled`", "attributes.`Duration`")
 
 
 @dataclass(frozen=True)
@@ -44,6 +51,40 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {k: to_dict(v) for k, v in obj.items()}
     return obj
+
+
+def saved_view_tag(view_id: str, name: str, columns: tuple[str, ...], now_ms: int) -> tuple[str, str]:
+    """(key, value) of the experiment tag that MLflow 3.17's UI lists as a saved runs view showing ``columns``
+    (``params.`x```, ``metrics.`x```, ``tags.`x```, ``attributes.`Duration```)."""
+    import json
+
+    state = json.dumps({"selectedColumns": list(columns)})
+    return (f"mlflow.sharedViewState.{view_id}",
+            json.dumps({"name": name, "createdAt": now_ms, "updatedAt": now_ms, "state": state}))
+
+
+def experiment_tags() -> dict[str, str]:
+    """The tags every experiment of the platform carries: its kind and the saved runs view."""
+    import time
+
+    key, value = saved_view_tag(RUNS_VIEW, "m3t runs: stage, variant, axes", RUNS_VIEW_COLUMNS, int(time.time() * 1000))
+    return {**EXPERIMENT_KIND, key: value}
+
+
+def ui_link(base_url: str, experiment_id: str, run_id: str | None = None, view: str | None = RUNS_VIEW) -> str:
+    """The MLflow UI link of an experiment (or one run) that opens on the runs table, with the saved view."""
+    if run_id:
+        return f"{base_url}/#/experiments/{experiment_id}/runs/{run_id}?{UI_QUERY}"
+    return f"{base_url}/#/experiments/{experiment_id}/runs?{UI_QUERY}{f'&viewStateShareKey={view}' if view else ''}"
+
+
+def experiment_ui_link(cfg: "ExperimentConfig", base_url: str, root: str | Path = ".") -> str | None:
+    """:func:`ui_link` of ``cfg``'s experiment in the store, or None while it has no experiment yet."""
+    disable_telemetry()
+    from mlflow.tracking import MlflowClient
+
+    experiment = MlflowClient(tracking_uri=tracking_uri(cfg, Path(root))).get_experiment_by_name(cfg.experiment)
+    return None if experiment is None else ui_link(base_url.rstrip("/"), experiment.experiment_id)
 
 
 def section_params(**sections: Any) -> dict[str, Any]:
@@ -166,10 +207,11 @@ def _open_run(mlflow: Any, cfg: ExperimentConfig, root: Path, stage: str, tags: 
     experiment = mlflow.get_experiment_by_name(cfg.experiment)
     if experiment is None:
         mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri(),
-                                 tags=EXPERIMENT_KIND)
-    elif any(experiment.tags.get(k) != v for k, v in EXPERIMENT_KIND.items()):  # a store made before the tag
-        for key, value in EXPERIMENT_KIND.items():
-            mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, key, value)
+                                 tags=experiment_tags())
+    else:  # a store made before these tags (the saved view, once written, is the user's to edit)
+        for key, value in experiment_tags().items():
+            if key not in experiment.tags or key in EXPERIMENT_KIND and experiment.tags[key] != value:
+                mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, key, value)
     mlflow.set_experiment(cfg.experiment)
     all_tags = {"stage": stage, **({"variant": variant} if variant else {}), **(tags or {}), **_EXTRA_TAGS.get()}
     with mlflow.start_run(run_name=run_name(stage, all_tags.get("variant"), all_tags), tags=all_tags):

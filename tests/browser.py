@@ -6,9 +6,9 @@ one websocket (``websockets.sync.client``); no Selenium, no Playwright download.
 
 Use from a test module::
 
-    from browser import browser_fixture  # noqa: F401 - provides the `browser` fixture
+    from browser import browser  # noqa: F401 - the fixture
 
-    def test_page(browser):
+    def test_page(browser):  # noqa: F811
         browser.goto(url)                                      # waits for the load event
         assert browser.evaluate("document.title") == "M3T"     # JSON-able results, promises awaited
         browser.wait_for("document.querySelector('video').readyState >= 1", timeout=10)
@@ -24,10 +24,10 @@ What a page collects, from the moment it is opened (``clear()`` empties both lis
 - ``console_errors``: ``console.error`` / ``console.assert`` calls, uncaught exceptions and unhandled
   rejections, and the browser's own error log entries (CSP, blocked content ...), one string each, with the
   script location when the browser gives one;
-- ``failed_requests``: requests that failed (``net::ERR_...``; requests the page itself cancelled, such as a
-  video's aborted range request, are not failures, nor is the browser's own probe for ``/favicon.ico``) and
-  responses with an HTTP status >= 400, as ``"<url>: <reason>"``. The browser logs each failed load as a console error too; those entries are left out
-  of ``console_errors`` so that each failure is reported once, here.
+- ``failed_requests``: requests that failed (``net::ERR_...``) and responses with an HTTP status >= 400, as
+  ``"<url>: <reason>"``. Not failures: requests the page itself cancelled (a video's aborted range request)
+  and the browser's own probe for ``/favicon.ico``. The browser also logs each failed load as a console
+  error; those entries are left out of ``console_errors``, so that each failure is reported once, here.
 
 Screenshots go to ``tests/artifacts/`` (``M3T_TEST_ARTIFACTS`` overrides; the folder is git-ignored).
 ``M3T_CHROMIUM`` names a binary to use instead of the first of ``chromium``, ``chromium-browser``,
@@ -94,13 +94,17 @@ class Chromium:
         self._ids = itertools.count(1)
         self._pages: dict[str, Page] = {}
         self._ws = None
-        with open(self._log_path, "wb") as log:
-            # Own process group: close() ends the launcher script, the browser and its helper processes at once.
-            self._process = subprocess.Popen(
-                [self.binary, "--headless=new", "--no-sandbox", "--disable-gpu", "--remote-debugging-port=0",
-                 f"--user-data-dir={self.profile}", "--no-first-run", "--no-default-browser-check",
-                 "--mute-audio", f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}", "about:blank"],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+        try:
+            with open(self._log_path, "wb") as log:
+                # Own process group: close() ends the launcher script, the browser and its helpers at once.
+                self._process = subprocess.Popen(
+                    [self.binary, "--headless=new", "--no-sandbox", "--disable-gpu", "--remote-debugging-port=0",
+                     f"--user-data-dir={self.profile}", "--no-first-run", "--no-default-browser-check",
+                     "--mute-audio", f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}", "about:blank"],
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+        except OSError:
+            shutil.rmtree(self.profile, ignore_errors=True)
+            raise
         try:
             url = self._wait_for_endpoint(timeout)
             # websockets >= 15 would route 127.0.0.1 through an HTTP(S)_PROXY of the environment
@@ -139,7 +143,12 @@ class Chromium:
         message: dict[str, Any] = {"id": message_id, "method": method, "params": params or {}}
         if session:
             message["sessionId"] = session
-        self._ws.send(json.dumps(message))
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            self._ws.send(json.dumps(message))
+        except ConnectionClosed as error:
+            raise self._gone(error) from error
         deadline = time.monotonic() + timeout
         while True:
             left = deadline - time.monotonic()
@@ -166,14 +175,17 @@ class Chromium:
         except TimeoutError:
             return None
         except ConnectionClosed as error:
-            self._ws = None
-            raise BrowserError(f"{self.binary} closed the DevTools connection ({error}); the end of its stderr:\n"
-                               + "\n".join(self._log_path.read_text(errors="replace").splitlines()[-15:])) from error
+            raise self._gone(error) from error
         if "method" in message:
             page = self._pages.get(message.get("sessionId", ""))
             if page is not None:
                 page._on_event(message["method"], message.get("params", {}))
         return message
+
+    def _gone(self, error: Exception) -> BrowserError:
+        self._ws = None
+        return BrowserError(f"{self.binary} closed the DevTools connection ({error}); the end of its stderr:\n"
+                            + "\n".join(self._log_path.read_text(errors="replace").splitlines()[-15:]))
 
     # -- pages ----------------------------------------------------------------------------------------------
     def new_page(self) -> Page:
@@ -389,8 +401,8 @@ def require_chromium() -> str:
 _SESSION_BROWSER = pytest.StashKey[Chromium]()
 
 
-@pytest.fixture(name="browser")
-def browser_fixture(request: pytest.FixtureRequest) -> Iterator[Page]:
+@pytest.fixture
+def browser(request: pytest.FixtureRequest) -> Iterator[Page]:
     """A fresh :class:`Page` of the session's headless Chromium; skips when there is no Chromium binary."""
     binary = require_chromium()
     stash = request.config.stash
