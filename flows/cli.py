@@ -160,7 +160,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
     for i, setting in enumerate(settings, 1):
         command = dvc_command(setting)
         print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:
+        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
             print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
     return 0
 
@@ -225,7 +225,7 @@ def _cmd_sgsa_sweep(args: argparse.Namespace) -> int:
     for i, setting in enumerate(settings, 1):
         command = dvc_command(setting, stage="evaluate-sgsa")
         print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:
+        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
             print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
     return 0 if args.dry_run else _cmd_sgsa_table(args)
 

@@ -213,8 +213,10 @@ def write_state(run_dir: Path, records: list[Running]) -> None:
 # --- health --------------------------------------------------------------------------------------------------
 def _http(url: str, body: dict | None = None, timeout: float = 2.0) -> bytes | None:
     """The response body of a 200 answer, else None."""
+    if not url.startswith(("http://", "https://")):  # services.json is a file on disk: never follow file:// there
+        return None
     data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})  # noqa: S310
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:  # noqa: S310 - our own servers
             return response.read() if response.status == 200 else None
@@ -281,7 +283,7 @@ def plan(cfg: ServicesConfig) -> list[Service]:
     experiment = load_params(cfg.params).experiment
     root = Path(cfg.root).resolve()
     run_dir = (root / cfg.run_dir).resolve()
-    local = "127.0.0.1" if cfg.host in ("0.0.0.0", "::") else cfg.host  # where this machine reaches them
+    local = "127.0.0.1" if cfg.host in ("0.0.0.0", "::") else cfg.host  # noqa: S104 - where clients connect, no bind
     local = f"[{local}]" if ":" in local else local
     prefect, mlflow = f"http://{local}:{cfg.prefect_port}", f"http://{local}:{cfg.mlflow_port}"
     base = {**TELEMETRY_OFF, **os.environ, "PYTHONUNBUFFERED": "1", "PREFECT_API_URL": f"{prefect}/api",
@@ -330,7 +332,8 @@ def start(service: Service, run_dir: Path, root: Path = Path(".")) -> tuple[Runn
     run_dir.mkdir(parents=True, exist_ok=True)
     log = run_dir / f"{service.name}.log"
     with open(log, "wb") as fh:
-        proc = subprocess.Popen(service.command, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(service.command, stdin=subprocess.DEVNULL, stdout=fh,  # noqa: S603 - plan()'s argv
+                                stderr=subprocess.STDOUT,
                                 env=service.env, cwd=root, start_new_session=True)
     record = Running(service.name, proc.pid, os.getpgid(proc.pid), service.port, service.url, service.health_url,
                      str(log), service.command, time.time(), _start_ticks(proc.pid))

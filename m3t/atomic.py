@@ -12,11 +12,15 @@ For writers that want a path or a file object of their own (Parquet, ``np.savez`
     with atomic_path(out) as tmp:
         torch.save(state, tmp)
 
+A disk that fills up mid-write raises an ``OSError`` (``ENOSPC``) naming the target; the temporary file is
+removed and the previous version stays. :func:`run_lock` keeps two runs of one job off the same outputs.
+
 Outputs get the permissions a plain ``open(path, "w")`` gives a new file: 0666 less the process umask
 (0644 under the usual umask 022), also when they replace an older file.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import secrets
@@ -58,6 +62,11 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+        raise OSError(errno.ENOSPC, f"no space left on the device writing {path} (the previous version, if any, is "
+                      "intact); free some space and rerun") from exc
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -111,3 +120,41 @@ def copy_file(source: str | os.PathLike, target: str | os.PathLike) -> Path:
     with atomic_path(target) as tmp:
         shutil.copyfile(source, tmp)
     return target
+
+
+@contextmanager
+def run_lock(path: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Hold the lock file ``path`` for the block, so that a second run of ``what`` on the same outputs stops with
+    a clear error naming the running one's pid instead of writing beside it.
+
+    An advisory ``flock``: the kernel releases it when its process dies, so a killed run (``kill -9``) never
+    blocks the next one; its file, left behind, is taken over. The file is removed when the block ends."""
+    import fcntl
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise RuntimeError(f"{what} is already running on these outputs (pid {holder}, lock {path}); wait for "
+                               "it to finish or stop it, then rerun") from None
+        try:  # the file may have been removed by the run that just finished: lock the one on disk
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield path
+    finally:
+        try:
+            os.unlink(path)
+        finally:
+            os.close(fd)

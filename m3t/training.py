@@ -18,6 +18,7 @@ import json
 import math
 import os
 import random
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal
@@ -25,7 +26,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 import torch
 
-from m3t.atomic import atomic_path
+from m3t.atomic import atomic_path, run_lock
 
 
 # ---- schedule and step ----------------------------------------------------------------------------------
@@ -230,6 +231,7 @@ class EpochTail:
         self.epoch, self.step, self.best_score = 0, 0, selection.worst
         self.history: list[dict[str, float]] = []
         self.best: dict[str, float] = {}
+        self._lock = ExitStack()  # the run's lock beside its ``last`` checkpoint (resume_saved .. result)
 
     def remaining(self, stop_after_epochs: int | None = None) -> range:
         """Epoch indices still to train (from a resumed epoch on), at most ``stop_after_epochs`` of them."""
@@ -251,12 +253,18 @@ class EpochTail:
         self.history, self.best = list(state["history"]), dict(state["best"])
 
     def result(self, model: torch.nn.Module, resumed_from_epoch: int = 0) -> TrainRun:
-        """The run's :class:`TrainRun` once the loop is done."""
+        """The run's :class:`TrainRun` once the loop is done (releases the lock :meth:`resume_saved` took)."""
+        self._lock.close()
         return TrainRun(self.best_path, self.history, self.best, model, resumed_from_epoch)
 
     def resume_saved(self, model: torch.nn.Module, load: Callable[[Path], Any], what: str) -> int:
         """Continue from the ``last`` checkpoint when one exists: ``load(path)`` gives an object with ``model``
-        and ``train_state`` (a trainer's checkpoint reader); returns the epoch training resumes at (0: none)."""
+        and ``train_state`` (a trainer's checkpoint reader); returns the epoch training resumes at (0: none).
+
+        On rank 0, first takes the lock ``<last>.lock`` until :meth:`result`: a second run of the same training
+        (same run key) stops with an error naming the first one's pid instead of both writing one ``last``."""
+        if self.last_path is not None and self.is_main:
+            self._lock.enter_context(run_lock(self.last_path.with_name(self.last_path.name + ".lock"), f"training {what}"))
         if self.last_path is None or not self.last_path.exists():
             return self.epoch
         loaded = load(self.last_path)

@@ -269,11 +269,27 @@ def test_smplx240_pipeline_refuses_the_fake_layout(shards_data, tmp_path):
 
 
 def test_bf16_autocast_trains_on_cpu(spec, tmp_path):
+    """bf16 really runs the linear layers in bfloat16 (outputs seen by a forward hook), and its epoch loss is
+    near the fp32 loss of the same seed but not bit-equal to it; a silently disabled autocast fails here."""
+    from torch.nn.modules.module import register_module_forward_hook
+
     clips = fitted("train")
     corpus = language_corpus("ASL-SYN", clips, [], spec, TINY)
-    cfg = dataclasses.replace(FAST, epochs=1, precision="bf16")
-    result = train_backtranslation(TINY, cfg, corpus, spec, "v", tmp_path / "bf16.pt", progress=False)
-    assert np.isfinite(result.history[-1]["train_loss"]) and result.best["epoch"] == 1  # no dev: the last epoch
+    losses = {}
+    for precision in ("bf16", "fp32"):
+        cfg = dataclasses.replace(FAST, epochs=1, precision=precision)
+        dtypes = set()
+        hook = register_module_forward_hook(
+            lambda mod, args, out: dtypes.add(out.dtype) if isinstance(mod, torch.nn.Linear) else None)
+        try:
+            result = train_backtranslation(TINY, cfg, corpus, spec, "v", tmp_path / f"{precision}.pt", progress=False)
+        finally:
+            hook.remove()
+        assert dtypes == {torch.bfloat16 if precision == "bf16" else torch.float32}, precision
+        losses[precision] = result.history[-1]["train_loss"]
+        assert np.isfinite(losses[precision]) and result.best["epoch"] == 1  # no dev: the last epoch
+    assert losses["bf16"] != losses["fp32"]
+    assert losses["bf16"] == pytest.approx(losses["fp32"], rel=0.05)
 
 
 def test_bt_table_rows_ground_truth_then_variants_and_names_its_definition():

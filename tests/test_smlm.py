@@ -2,6 +2,7 @@
 (EOS, cache), checkpoints, bad inputs, DDP on gloo and bf16."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from pathlib import Path
@@ -225,12 +226,25 @@ def test_production_only_never_trains_the_text_head(vocab, tmp_path):
 
 
 def test_bf16_autocast_step_on_cpu(vocab):
+    """bf16 really runs the heads in bfloat16 (their logits are bf16, the loss is near the fp32 loss of the same
+    model and batch but not bit-equal to it); a silently disabled autocast fails here."""
+    torch.manual_seed(0)
     model = SignMotionLM(TINY, SMLMDims.from_vocabulary(vocab))
-    optim = torch.optim.AdamW(model.parameters(), lr=1e-3)
-    sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
+    twin = copy.deepcopy(model)
+    batch = production_batch(make_examples(vocab)[:2], vocab)
     before = model.heads["body"].weight.detach().clone()
-    stats = train_step(model, production_batch(make_examples(vocab)[:2], vocab), optim, sched, "bf16")
-    assert math.isfinite(stats["production_loss"])
+    stats = {}
+    for precision, m in (("bf16", model), ("fp32", twin)):
+        optim = torch.optim.AdamW(m.parameters(), lr=1e-3)
+        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
+        dtypes = []
+        hook = m.heads["body"].register_forward_hook(lambda mod, args, out: dtypes.append(out.dtype))
+        stats[precision] = train_step(m, batch, optim, sched, precision)
+        hook.remove()
+        assert dtypes == [torch.bfloat16 if precision == "bf16" else torch.float32], precision
+    assert math.isfinite(stats["bf16"]["production_loss"])
+    assert stats["bf16"]["production_loss"] != stats["fp32"]["production_loss"]
+    assert stats["bf16"]["production_loss"] == pytest.approx(stats["fp32"]["production_loss"], rel=0.05)
     assert not torch.equal(before, model.heads["body"].weight)
 
 

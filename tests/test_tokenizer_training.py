@@ -3,6 +3,7 @@ cover every clip, validation on every dev clip, codebook statistics of the test 
 train-tokenizers + tokenize flow end to end."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from pathlib import Path
@@ -98,13 +99,25 @@ def test_resumed_training_continues_the_same_loss_curve(shards_dir, tmp_path, qu
 
 
 def test_bf16_autocast_step_on_cpu():
+    """bf16 really runs the convolutions in bfloat16 (their outputs are bf16, the loss is near the fp32 loss of
+    the same model and batch but not bit-equal to it); a silently disabled autocast fails here."""
     torch.manual_seed(0)
     model = MotionTokenizer(TINY_MODEL.vae_config("face", 10))
-    optim = torch.optim.Adam(model.parameters(), lr=1e-3)
-    sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
+    twin = copy.deepcopy(model)
+    batch = (torch.randn(2, 16, 10), torch.ones(2, 16, dtype=torch.bool))
     before = model.encoder[0].weight.detach().clone()
-    stats = train_step(model, (torch.randn(2, 16, 10), torch.ones(2, 16, dtype=torch.bool)), optim, sched, "bf16")
-    assert math.isfinite(stats["loss"])
+    stats = {}
+    for precision, m in (("bf16", model), ("fp32", twin)):
+        optim = torch.optim.Adam(m.parameters(), lr=1e-3)
+        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
+        dtypes = []
+        hook = m.encoder[0].register_forward_hook(lambda mod, args, out: dtypes.append(out.dtype))
+        stats[precision] = train_step(m, batch, optim, sched, precision)
+        hook.remove()
+        assert dtypes == [torch.bfloat16 if precision == "bf16" else torch.float32], precision
+    assert math.isfinite(stats["bf16"]["loss"])
+    assert stats["bf16"]["loss"] != stats["fp32"]["loss"]
+    assert stats["bf16"]["loss"] == pytest.approx(stats["fp32"]["loss"], rel=0.05)
     assert not torch.equal(before, model.encoder[0].weight)
 
 

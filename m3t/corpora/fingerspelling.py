@@ -131,6 +131,10 @@ class FingerspellingCorpus(CorpusAdapter):
             seen.add((language, letter.upper()))
             letters.append(Letter(letter, language, label, rel.as_posix(), row, r.get("spoken_language") or "",
                                   r.get("start") or "", r.get("end") or ""))
+        unknown = [code for code in cfg.languages if code not in counts]
+        if unknown:  # a typo in corpora.fingerspelling.options.languages would otherwise list nothing for it
+            raise CorpusError(f"corpora.fingerspelling.languages: {unknown} not in {path}; its signed languages are "
+                              f"{', '.join(sorted(c for c in counts if c))}")
         return letters
 
     def letters(self, language: str) -> dict[str, str]:

@@ -43,6 +43,7 @@ from m3t.corpora.base import (
     CorpusError,
     Listing,
     load_data_pickle,
+    media_path_problem,
     read_lines,
     with_kind,
 )
@@ -173,6 +174,9 @@ class SokeSmplxCorpus(CorpusAdapter):
         if not cfg.annotation:
             return None
         path = self.root / cfg.annotation
+        unsafe = media_path_problem(self.root, cfg.annotation)
+        if unsafe is not None:
+            raise CorpusError(f"corpora.soke_smplx.annotation: {unsafe}")
         lines = read_lines(path, "Set corpora.soke_smplx.annotation to a CSV with columns "
                                  "id,text[,gloss,signer,language,split].")
         reader = csv.DictReader(io.StringIO("\n".join(lines)))
@@ -326,6 +330,10 @@ class SltPickleCorpus(CorpusAdapter):
         cfg = self.config
         out = Collector(self.root)
         for path in self.files():
+            unsafe = out.media_problem(out.rel(path))  # a params value or a symbolic link may lead out of the root
+            if unsafe is not None:
+                out.quarantine(path, None, None, unsafe)
+                continue
             split = split_of_file(path)
             if split is None:
                 out.quarantine(path, None, None, "cannot tell the split from the file name (.train/.dev/.test)")

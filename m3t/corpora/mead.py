@@ -176,6 +176,9 @@ def _checked(raw: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray]:
     missing = [k for k in FLAME_KEYS if k not in raw]
     if missing:
         raise CorpusError(f"{path} lacks datasets {missing}; expected {', '.join(FLAME_KEYS)} (EMOTE's export)")
+    for key, value in raw.items():
+        if value.dtype.kind not in "fiu":  # strings, objects: astype would fail without naming the file
+            raise CorpusError(f"{path}: dataset {key!r} holds {value.dtype} values; expected numbers (float32)")
     out = {k: _frames_first(raw[k], k, path).astype(np.float32) for k in FLAME_KEYS + OPTIONAL_KEYS if k in raw}
     frames = out["exp"].shape[0]
     for key, value in out.items():

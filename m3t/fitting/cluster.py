@@ -148,7 +148,7 @@ def connect_dask(run: FitCorpusConfig) -> DaskExecutor:
 
     if not run.dask_address:
         cluster = LocalCluster(n_workers=max(run.workers, 1), threads_per_worker=1, processes=True,
-                               dashboard_address=":0")  # a free port: never a clash with another cluster's 8787
+                               dashboard_address="127.0.0.1:0")  # a free port: never a clash with another cluster's 8787
         try:
             return DaskExecutor(Client(cluster, set_as_default=False), cluster)
         except BaseException:

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from m3t.atomic import write_json
+from m3t.atomic import run_lock, write_json, write_text
 from m3t.body.factory import body_cache_key, load_body_model
 from m3t.body.metric_sets import joints_for
 from m3t.body.protocol import BodyModel, ModalityLayout, as_tensors
@@ -248,11 +248,31 @@ def part_path(clip: Clip, key: str, ctx: FitContext) -> Path:
     return Path(ctx.job.run.cache_dir) / "parts" / f"{clip.id.replace('/', '_')}-{key}.parquet"
 
 
+def _checksum_file(part: Path) -> Path:
+    return part.with_suffix(".sha256")
+
+
+def _part_intact(part: Path) -> bool:
+    """Whether a cached part file is the one its run wrote: its SHA-256 matches the digest written beside it
+    (a flipped byte on disk is refitted, never read). A part cached before digests existed is trusted once it
+    reads back, and gets its digest."""
+    digest = hashlib.sha256(part.read_bytes()).hexdigest()
+    checksum = _checksum_file(part)
+    if checksum.exists():
+        return checksum.read_text().strip() == digest
+    try:
+        read_shard(part)
+    except Exception:  # noqa: BLE001 - unreadable: refit it
+        return False
+    write_text(checksum, digest)
+    return True
+
+
 def _part_outcome(clip: Clip, part: Path, make: Callable[[], tuple[FittedClip, dict[str, Any]]],
                   layout: ModalityLayout, start: float, seen: dict[str, Any]) -> ClipOutcome:
     """The clip's part file from the cache when it and its record exist, else ``make()`` written atomically."""
     init_file = part.with_suffix(".init.json")
-    if part.exists() and init_file.exists():
+    if part.exists() and init_file.exists() and _part_intact(part):
         fitted = read_shard(part).clips[0]
         return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics,
                            frames=fitted.num_frames, init=json.loads(init_file.read_text()), **seen)
@@ -260,6 +280,7 @@ def _part_outcome(clip: Clip, part: Path, make: Callable[[], tuple[FittedClip, d
     part.parent.mkdir(parents=True, exist_ok=True)
     write_json(init_file, init)  # before the part: a part on disk always has its record
     write_shard(part, [fitted], layout)
+    write_text(_checksum_file(part), hashlib.sha256(part.read_bytes()).hexdigest())  # after the part: it vouches for it
     return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
                        frames=fitted.num_frames, seconds=time.perf_counter() - start, init=init, **seen)
 
@@ -400,6 +421,7 @@ def fit_batch(job: FitJob, clips: list[Clip]) -> list[ClipOutcome]:
 
 
 # ------------------------------------------------------------------------------------ the whole run
+LOCK_NAME = ".fit-corpus.lock"  # in the shards dir while a run writes it: a second run on it is refused
 POLL_SECONDS = 10.0  # while no clip finishes, how often an executor is asked whether its cluster is still there
 
 
@@ -489,9 +511,10 @@ def run_fit_corpus(
         layout, clips, refused = plan_import(kind, (ctx or worker_context(job)).import_settings, clips)
         outcomes += refused
     own = executor is None and ctx is None
-    opened = ExitStack()  # the run's own executor, shut down when the run ends or stops
-    executor = opened.enter_context(open_executor(job.run)) if own else executor
+    opened = ExitStack()  # the lock on the shards, then the run's own executor; released when the run ends or stops
+    opened.enter_context(run_lock(Path(job.shards_dir) / LOCK_NAME, f"fit-corpus {job.corpus}"))
     try:
+        executor = opened.enter_context(open_executor(job.run)) if own else executor
         with tqdm(total=len(clips), desc=f"fit-corpus {job.corpus}", unit="clip", disable=not progress) as bar:
             for outcome in _outcomes(job, clips, executor, ctx):
                 outcomes.append(outcome)
@@ -500,10 +523,10 @@ def run_fit_corpus(
                                 quarantined=sum(o.status == "quarantined" for o in outcomes))
                 if on_outcome is not None:
                     on_outcome(outcome)
+        layout = layout or (ctx or worker_context(job)).body.layout
+        return consolidate(outcomes, layout, job.shards_dir, job.corpus, time.perf_counter() - start)
     finally:
         opened.close()
-    layout = layout or (ctx or worker_context(job)).body.layout
-    return consolidate(outcomes, layout, job.shards_dir, job.corpus, time.perf_counter() - start)
 
 
 def fit_and_log(job: FitJob, experiment, executor: Executor | None = None, progress: bool = True,

@@ -201,6 +201,11 @@ def _unstack_modality(column: pa.ChunkedArray, dim: int, lengths: np.ndarray, so
     frames = lists.flatten()
     values = frames.flatten().to_numpy(zero_copy_only=False)
     flat = np.array(values, dtype=np.float32).reshape(int(lengths.sum()), dim)  # writable copy
+    finite = np.isfinite(flat).all(axis=1)  # (sum T,)
+    if not finite.all():  # the writer refuses NaN / inf: such a shard was edited or damaged after writing
+        row = int(np.searchsorted(np.cumsum(lengths), int(np.argmin(finite)), side="right"))
+        raise ShardFormatError(f"{source}: row {row} (0-based), column {name!r} holds NaN or inf; the shard is damaged "
+                               "(re-run the stage that wrote it)")
     return np.split(flat, np.cumsum(lengths)[:-1]) if len(lengths) else []
 
 
@@ -232,6 +237,10 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     table = pf.read(columns=[*METADATA_COLUMNS, IDENTITY_COLUMN, *names])
     n = table.num_rows
     meta = {name: table.column(name).to_pylist() for name in METADATA_COLUMNS}
+    if len(set(meta["id"])) != n:  # the writer refuses repeated ids: every later join is keyed by them
+        twice = sorted({i for i in meta["id"] if meta["id"].count(i) > 1})
+        raise ShardFormatError(f"{source}: clip ids {twice[:5]} appear twice; the shard is damaged (re-run the "
+                               "stage that wrote it)")
     lengths = np.asarray(meta["num_frames"], dtype=np.int64)
     identity_col = table.column(IDENTITY_COLUMN).combine_chunks()
     identity_values = identity_col.flatten().to_numpy(zero_copy_only=False)

@@ -102,8 +102,16 @@ def read_token_shard(path: str | os.PathLike) -> TokenShard:
     if version != str(TOKEN_SCHEMA_VERSION) or TOKEN_INFO_KEY not in meta:
         raise ShardFormatError(f"{path}: not an m3t token shard of version {TOKEN_SCHEMA_VERSION} (found {version or 'none'}); "
                                "rerun the tokenize stage")
-    raw = json.loads(meta[TOKEN_INFO_KEY])
-    info = TokenInfo({k: int(v) for k, v in raw["streams"].items()}, int(raw["downsample"]), dict(raw["tokenizers"]))
+    try:
+        raw = json.loads(meta[TOKEN_INFO_KEY])
+        info = TokenInfo({k: int(v) for k, v in raw["streams"].items()}, int(raw["downsample"]),
+                         dict(raw["tokenizers"]))
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ShardFormatError(f"{path}: cannot parse the {TOKEN_INFO_KEY.decode()} metadata ({exc!r}); rerun the "
+                               "tokenize stage") from exc
+    missing = [n for n in (*CLIP_COLUMNS, "num_frames", *info.streams) if n not in pf.schema_arrow.names]
+    if missing:
+        raise ShardFormatError(f"{path}: columns {missing} missing; rerun the tokenize stage")
     table = pf.read()
     columns = {n: table.column(n).to_pylist() for n in (*CLIP_COLUMNS, "num_frames")}
     streams = {s: table.column(s).to_pylist() for s in info.streams}
@@ -112,4 +120,9 @@ def read_token_shard(path: str | os.PathLike) -> TokenShard:
                   {s: np.asarray(streams[s][i], dtype=np.int64) for s in info.streams})
         for i in range(table.num_rows)
     )
+    for row, clip in enumerate(clips):  # what the writer checks: a damaged or hand-edited file fails here, not in a model
+        try:
+            _check(clip, info)
+        except ValueError as exc:
+            raise ShardFormatError(f"{path}: row {row} (0-based): {exc}; rerun the tokenize stage") from exc
     return TokenShard(path, info, clips)
