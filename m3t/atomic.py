@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import errno
 import json
+import glob
 import os
 import secrets
 import shutil
@@ -120,6 +121,19 @@ def copy_file(source: str | os.PathLike, target: str | os.PathLike) -> Path:
     with atomic_path(target) as tmp:
         shutil.copyfile(source, tmp)
     return target
+
+
+def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files :func:`atomic_path` left beside ``path`` when its writer was killed mid-write
+    (``.<name>.<12 hex>.<suffix>``); returns them. Only safe while holding the lock of the run that writes
+    ``path`` (:func:`run_lock`): otherwise another writer's live temporary file could go."""
+    path = Path(path)
+    prefix = f".{path.name}."
+    stale = [p for p in path.parent.glob(f"{glob.escape(prefix)}*") if p.is_file()
+             and len(p.name) > len(prefix) + 12 and all(c in "0123456789abcdef" for c in p.name[len(prefix):len(prefix) + 12])]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 @contextmanager

@@ -26,7 +26,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 import torch
 
-from m3t.atomic import atomic_path, run_lock
+from m3t.atomic import atomic_path, remove_stale_temps, run_lock
 
 
 # ---- schedule and step ----------------------------------------------------------------------------------
@@ -265,6 +265,7 @@ class EpochTail:
         (same run key) stops with an error naming the first one's pid instead of both writing one ``last``."""
         if self.last_path is not None and self.is_main:
             self._lock.enter_context(run_lock(self.last_path.with_name(self.last_path.name + ".lock"), f"training {what}"))
+            remove_stale_temps(self.last_path)  # a run killed while writing ``last`` left its temporary file
         if self.last_path is None or not self.last_path.exists():
             return self.epoch
         loaded = load(self.last_path)
