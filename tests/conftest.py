@@ -43,3 +43,14 @@ def tiny_workspace(body, tmp_path_factory):
     from tiny_pipeline import build_workspace
 
     return build_workspace(tmp_path_factory.mktemp("workspace"), body)
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads_restored():
+    """A test that sets torch's thread count (for speed or determinism) does not change it for the tests after
+    it: results of the float reductions, and so of short trainings, depend on it."""
+    import torch
+
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
