@@ -15,10 +15,8 @@ import yaml
 
 from m3t.config import load_params
 from m3t.experiment import to_dict
-from m3t.corpora.clip import Clip
 from m3t.runtime import DistributedContext
-from m3t.shards.io import read_shard, write_shard
-from m3t.shards.schema import FittedClip
+from m3t.shards.io import read_shard
 from m3t.shards.tokens import read_token_shard
 from m3t.tokenizers.data import WindowSampler, clip_sequences, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
@@ -26,7 +24,6 @@ from m3t.tokenizers.pipeline import codebook_report
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
-from test_fitting import front_camera, smooth_motion
 
 ROOT = Path(__file__).resolve().parents[1]
 SPLITS = {"train": 4, "dev": 1, "test": 1}
@@ -36,20 +33,9 @@ SPLITS = {"train": 4, "dev": 1, "test": 1}
 def shards_dir(body, tmp_path_factory) -> Path:
     """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames), in the folder of
     corpus ``synthetic`` under a shards root (``data.shards_root`` = its parent)."""
-    root = tmp_path_factory.mktemp("shards") / "synthetic"
-    root.mkdir()
-    seed = 0
-    for split, count in SPLITS.items():
-        clips = []
-        for _ in range(count):
-            frames = 18 + 7 * seed % 24
-            params = {k: v.numpy() for k, v in smooth_motion(body, frames=frames, seed=seed).items()}
-            clip = Clip(f"c{seed}", "synthetic", split, "ASL-SYN", "s0", "t", "G", f"c{seed}.npz", 25.0)
-            camera = front_camera().as_dict() if seed % 2 else {}  # with and without a stored camera
-            clips.append(FittedClip(clip, "k", params, body.default_identity().numpy(), camera, {}, body.name))
-            seed += 1
-        write_shard(root / f"{split}.parquet", clips, body.layout)
-    return root
+    from tiny_pipeline import write_shards
+
+    return write_shards(tmp_path_factory.mktemp("shards") / "synthetic", body, SPLITS, text=lambda seed: "t")
 
 
 def tiny_cfg(tmp_path: Path, **overrides) -> TokenizerTrainConfig:

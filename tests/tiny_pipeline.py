@@ -5,6 +5,7 @@ MLflow store of its own. The dashboard and the nightly re-evaluation are tested 
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,23 +28,25 @@ class Workspace:
     params: Params
 
 
-def write_shards(shards_root: Path, body) -> None:
-    """Smooth synthetic motion of 18 .. 41 frames per clip, with and without a stored camera."""
+def write_shards(folder: Path, body, splits: dict[str, int] = SPLITS,
+                 text: Callable[[int], str] = lambda seed: f"sentence {seed % 3}") -> Path:
+    """Fitted shards of smooth synthetic motion (clip ``c<seed>`` of 18 .. 41 frames, text ``text(seed)``), with
+    and without a stored camera, ``splits[split]`` clips per split in ``folder`` (created); returns it."""
     from test_fitting import front_camera, smooth_motion
 
-    folder = shards_root / "synthetic"
     folder.mkdir(parents=True)
     seed = 0
-    for split, count in SPLITS.items():
+    for split, count in splits.items():
         clips = []
         for _ in range(count):
             frames = 18 + 7 * seed % 24
             motion = {k: v.numpy() for k, v in smooth_motion(body, frames=frames, seed=seed).items()}
-            clip = Clip(f"c{seed}", "synthetic", split, "ASL-SYN", "s0", f"sentence {seed % 3}", "G", f"c{seed}.npz", 25.0)
+            clip = Clip(f"c{seed}", "synthetic", split, "ASL-SYN", "s0", text(seed), "G", f"c{seed}.npz", 25.0)
             camera = front_camera().as_dict() if seed % 2 else {}
             clips.append(FittedClip(clip, "k", motion, body.default_identity().numpy(), camera, {}, body.name))
             seed += 1
         write_shard(folder / f"{split}.parquet", clips, body.layout)
+    return folder
 
 
 def build_workspace(root: Path, body) -> Workspace:
@@ -52,7 +55,7 @@ def build_workspace(root: Path, body) -> Workspace:
     from m3t.tokenizers.pipeline import train_and_log as train_tokenizers
     from m3t.tokenizers.tokenize import run_tokenize
 
-    write_shards(root / "shards", body)
+    write_shards(root / "shards" / "synthetic", body)
     params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
         "body": {"cache_dir": str(ROOT / ".cache" / "anny")},
         "experiment": {"enabled": True, "tracking_uri": f"sqlite:///{root / 'mlflow.db'}",
