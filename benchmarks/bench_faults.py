@@ -269,6 +269,28 @@ def corrupt_part_trial(job: Job, reference: dict[str, Path], logs: Path) -> dict
     return {"trials": 1, "failures": int(bool(problems)), "refitted": rewritten, "problems": problems}
 
 
+def corrupt_track_trial(job: Job, reference: dict[str, Path], logs: Path) -> dict:
+    """Flip bytes in one cached track file of a finished run: the rerun must track that clip again (never read
+    the damaged track), which gives the same track bytes and so reuses every fitted part."""
+    tracks = job.state[0] / "tracks"
+    victim = sorted(tracks.glob("*.npz"))[0]
+    intact = victim.read_bytes()
+    data = bytearray(intact)
+    middle = len(data) // 2
+    data[middle:middle + 8] = bytes(b ^ 0xFF for b in data[middle:middle + 8])
+    victim.write_bytes(bytes(data))
+    before = parts(job.state[0])
+    run_to_end(job.stage, job.params, logs / "corrupt-track.log")
+    after = parts(job.state[0])
+    problems = compare(reference, job.outputs) + [f"left behind: {k}" for k in leftovers(job.state)]
+    if victim.read_bytes() != intact:
+        problems.append(f"{victim.name} was not tracked again (its damaged bytes are still there)")
+    refitted = sorted(k for k, v in after.items() if before.get(k) != v)
+    if refitted:
+        problems.append(f"parts refitted although the track came back identical: {refitted}")
+    return {"trials": 1, "failures": int(bool(problems)), "retracked": victim.name, "problems": problems}
+
+
 def concurrent_trial(job: Job, logs: Path, lock: Path) -> dict:
     """A second run of ``job`` while the first holds its lock: refused with the first one's pid, the first
     finishes."""
@@ -296,28 +318,37 @@ def concurrent_trial(job: Job, logs: Path, lock: Path) -> dict:
 
 
 def disk_full_trial(scratch: Path) -> dict:
-    """``ENOSPC`` in the middle of a shard write, in this process: the previous shard is intact, no temporary
-    file is left, the error names the file."""
+    """``ENOSPC`` in the middle of a shard write, in this process, through the shard writer every stage uses
+    (:func:`m3t.shards.io.write_table_atomic`): the Parquet writer has put part of the new shard on disk when the
+    device fills up. The previous shard must be intact, no temporary file left, and the error must name the file."""
+    from unittest import mock
+
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from m3t.atomic import atomic_path
+    from m3t.shards.io import write_table_atomic
 
     folder = scratch / "disk-full"
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
-    import pyarrow as pa
-
     shard = folder / "train.parquet"
-    pq.write_table(pa.table({"x": list(range(100))}), shard)
+    write_table_atomic(shard, pa.table({"x": list(range(100))}))
     old = hashlib.sha256(shard.read_bytes()).hexdigest()
+    real_write = pq.ParquetWriter.write_table
+
+    def fill_the_disk(writer, table, *args, **kwargs):
+        real_write(writer, table.slice(0, len(table) // 2), *args, **kwargs)  # half the rows reach the file
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
     message = ""
     try:
-        with atomic_path(shard) as tmp, open(tmp, "wb") as fh:
-            fh.write(b"PAR1" + bytes(4096))  # half a file on disk, then the device is full
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        with mock.patch.object(pq.ParquetWriter, "write_table", fill_the_disk):
+            write_table_atomic(shard, pa.table({"x": list(range(1000))}))
     except OSError as exc:
         message = str(exc)
     problems = []
+    if not message:
+        problems.append("the write did not fail")
     if hashlib.sha256(shard.read_bytes()).hexdigest() != old:
         problems.append("the previous shard changed")
     if [p.name for p in folder.iterdir()] != ["train.parquet"]:
@@ -368,6 +399,7 @@ def run(kills: int, jobs: list[str], clips: int, iterations: int, seed: int, roo
         reference = files_under((scratch / "fit-corpus-reference" / "synthetic",)) if "fit-corpus" in jobs else None
         if reference:
             result["faults"]["corrupt part file"] = corrupt_part_trial(fit, reference, logs)
+            result["faults"]["corrupt track file"] = corrupt_track_trial(fit, reference, logs)
         slow = Job("fit-corpus", fit.stage, root / "params-slow.yaml", fit.state, fit.outputs)
         result["faults"]["two fit-corpus runs at once"] = concurrent_trial(slow, logs, fit.outputs[0] / ".fit-corpus.lock")
     result["faults"]["disk full during a shard write"] = disk_full_trial(scratch)

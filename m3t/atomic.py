@@ -49,20 +49,27 @@ def _new_temp(folder: Path, prefix: str, suffix: str) -> Path:
     raise FileExistsError(f"{folder}: 100 temporary names {prefix}*{suffix} already exist; remove stale ones")
 
 
+def _same_bytes(a: Path, b: Path) -> bool:
+    return b.is_file() and a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes()
+
+
 @contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", keep_identical: bool = False) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; on success it replaces ``path``, on any error it is removed.
 
     ``suffix`` is the temporary name's ending (``".npz"`` for writers that append their own extension).
     The parent folder is created when missing. The file exists (empty) when yielded, with mode 0666 less the
-    umask, which writers that open the path keep and the rename carries over to ``path``.
+    umask, which writers that open the path keep and the rename carries over to ``path``. With
+    ``keep_identical`` a ``path`` whose bytes equal the new ones is left alone (its mtime too, so DVC sees no
+    change) and the temporary file is dropped.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _new_temp(path.parent, f".{path.name}.", suffix)
     try:
         yield tmp
-        os.replace(tmp, path)
+        if not (keep_identical and _same_bytes(tmp, path)):
+            os.replace(tmp, path)
     except OSError as exc:
         if exc.errno != errno.ENOSPC:
             raise

@@ -179,7 +179,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
     else:
         key = _digest(KEY_VERSION, media_key(clip, root, ctx.job.mediapipe))
     path = Path(ctx.job.run.cache_dir) / "tracks" / f"{clip.id.replace('/', '_')}-{key}.npz"
-    if not path.exists():
+    if not (path.exists() and _cache_intact(path, load_track)):
         if kind == "synthetic":
             params, identity, camera = ctx.ground_truth(clip)
             track = simulate_track(clip.id, as_tensors(params), torch.as_tensor(identity), camera, clip.fps,
@@ -187,6 +187,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
         else:
             track = track_real_clip(clip, root, ctx.job.mediapipe)
         save_track(track, path)
+        _vouch(path)
     return path
 
 
@@ -248,21 +249,26 @@ def part_path(clip: Clip, key: str, ctx: FitContext) -> Path:
     return Path(ctx.job.run.cache_dir) / "parts" / f"{clip.id.replace('/', '_')}-{key}.parquet"
 
 
-def _checksum_file(part: Path) -> Path:
-    return part.with_suffix(".sha256")
+def _checksum_file(cached: Path) -> Path:
+    return cached.with_suffix(".sha256")
 
 
-def _part_intact(part: Path) -> bool:
-    """Whether a cached part file is the one its run wrote: its SHA-256 matches the digest written beside it
-    (a flipped byte on disk is refitted, never read). A part cached before digests existed is trusted once it
-    reads back, and gets its digest."""
-    digest = hashlib.sha256(part.read_bytes()).hexdigest()
-    checksum = _checksum_file(part)
+def _vouch(cached: Path) -> None:
+    """Write the SHA-256 of a cached track or part beside it, after the file itself: the digest vouches for it."""
+    write_text(_checksum_file(cached), hashlib.sha256(cached.read_bytes()).hexdigest())
+
+
+def _cache_intact(cached: Path, read: Callable[[Path], object]) -> bool:
+    """Whether a cached track or part file is the one its run wrote: its SHA-256 matches the digest written
+    beside it (a flipped byte on disk is redone, never read). A file cached before digests existed is trusted
+    once ``read`` reads it back, and gets its digest."""
+    digest = hashlib.sha256(cached.read_bytes()).hexdigest()
+    checksum = _checksum_file(cached)
     if checksum.exists():
         return checksum.read_text().strip() == digest
     try:
-        read_shard(part)
-    except Exception:  # noqa: BLE001 - unreadable: refit it
+        read(cached)
+    except Exception:  # noqa: BLE001 - unreadable: redo it
         return False
     write_text(checksum, digest)
     return True
@@ -272,7 +278,7 @@ def _part_outcome(clip: Clip, part: Path, make: Callable[[], tuple[FittedClip, d
                   layout: ModalityLayout, start: float, seen: dict[str, Any]) -> ClipOutcome:
     """The clip's part file from the cache when it and its record exist, else ``make()`` written atomically."""
     init_file = part.with_suffix(".init.json")
-    if part.exists() and init_file.exists() and _part_intact(part):
+    if part.exists() and init_file.exists() and _cache_intact(part, read_shard):
         fitted = read_shard(part).clips[0]
         return ClipOutcome(clip.id, clip.split, "cached", str(part), metrics=fitted.metrics,
                            frames=fitted.num_frames, init=json.loads(init_file.read_text()), **seen)
@@ -280,7 +286,7 @@ def _part_outcome(clip: Clip, part: Path, make: Callable[[], tuple[FittedClip, d
     part.parent.mkdir(parents=True, exist_ok=True)
     write_json(init_file, init)  # before the part: a part on disk always has its record
     write_shard(part, [fitted], layout)
-    write_text(_checksum_file(part), hashlib.sha256(part.read_bytes()).hexdigest())  # after the part: it vouches for it
+    _vouch(part)
     return ClipOutcome(clip.id, clip.split, "fitted", str(part), metrics=fitted.metrics,
                        frames=fitted.num_frames, seconds=time.perf_counter() - start, init=init, **seen)
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -20,6 +19,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from m3t.atomic import atomic_path
 from m3t.body.protocol import ModalityLayout
 from m3t.shards.schema import (
     IDENTITY_COLUMN,
@@ -154,24 +154,17 @@ def write_shard(path: str | os.PathLike, clips: Sequence[FittedClip], layout: Mo
 
 
 def write_table_atomic(path: str | os.PathLike, table: pa.Table) -> Path:
-    """Write an Arrow table to Parquet at ``path`` through a temporary file + rename (shared by all shards)."""
+    """Write an Arrow table to Parquet at ``path`` with :func:`m3t.atomic.atomic_path` (shared by all shards): a
+    killed or failed write (a full disk names the file) leaves the previous shard intact and no temporary file,
+    and a shard whose bytes would not change keeps its mtime."""
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write shard {path}: directory {path.parent} does not exist; create it first")
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "xb") as fh:
-            with pq.ParquetWriter(fh, table.schema, compression=COMPRESSION) as writer:
-                writer.write_table(table)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if path.is_file() and path.stat().st_size == tmp.stat().st_size and path.read_bytes() == tmp.read_bytes():
-            tmp.unlink()  # identical content: leave the file (and its mtime) alone, so DVC sees no change
-        else:
-            os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path, keep_identical=True) as tmp, open(tmp, "wb") as fh:
+        with pq.ParquetWriter(fh, table.schema, compression=COMPRESSION) as writer:
+            writer.write_table(table)
+        fh.flush()
+        os.fsync(fh.fileno())
     return path
 
 
