@@ -16,7 +16,7 @@ from dashboards import html as h
 from dashboards.paper import M3T, SGSA, PaperTable
 from m3t.backtranslation.table import backtranslation_table
 from m3t.config import Params
-from m3t.experiment import ExperimentConfig, RunRecord, metric_histories
+from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
 from m3t.sgsa.table import adjacency_table, cross_table, layers_table
 from m3t.slr.table import recognition_table
 from m3t.smlm.table import production_table
@@ -32,11 +32,7 @@ def _stage(runs: list[RunRecord], stage: str) -> list[RunRecord]:
 
 
 def _newest_per_variant(runs: list[RunRecord], stage: str, limit: int = 4) -> list[RunRecord]:
-    seen: dict[str, RunRecord] = {}
-    for r in _stage(runs, stage):
-        if r.status == "FINISHED":
-            seen.setdefault(r.tags.get("variant", ""), r)
-    return list(seen.values())[:limit]
+    return list(newest_finished(_stage(runs, stage), lambda r: r.tags.get("variant", "")).values())[:limit]
 
 
 def _when(record: RunRecord) -> str:
@@ -133,10 +129,8 @@ def _token_counts(record: RunRecord) -> dict[str, dict]:
 def codebooks(runs: list[RunRecord], params: Params) -> str:
     import plotly.graph_objects as go
 
-    newest: dict[str, RunRecord] = {}
-    for r in _stage(runs, "train-tokenizers") + _stage(runs, "evaluate-tokenizers"):
-        if r.status == "FINISHED":
-            newest.setdefault(r.tags.get("quantizer", "?"), r)
+    newest = newest_finished(_stage(runs, "train-tokenizers") + _stage(runs, "evaluate-tokenizers"),
+                             lambda r: r.tags.get("quantizer", "?"))
     if not newest:
         return h.empty("No tokenizer run yet: run <code>dvc repro train-tokenizers</code>.")
     groups = ("body", "hand", "face")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextvars
 import dataclasses
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Hashable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -228,6 +228,21 @@ class RunRecord:
     metrics: dict[str, float]
     artifact_dir: Path | None  # local artifact folder when the store is on this machine
     tags: dict[str, str] = field(default_factory=dict)
+
+
+def newest_finished(records: Iterable[RunRecord], key: Callable[[RunRecord], Hashable]) -> dict[Hashable, RunRecord]:
+    """The newest finished run per ``key(run)``, from ``records`` newest first (as :func:`fetch_runs` gives
+    them); keys in the order their newest run appears. Failed and running runs never count."""
+    out: dict[Hashable, RunRecord] = {}
+    for record in records:
+        if record.status == "FINISHED":
+            out.setdefault(key(record), record)
+    return out
+
+
+def variant_of(record: RunRecord) -> str:
+    """The run's ``variant`` tag, or its id's first 8 characters when it has none."""
+    return record.tags.get("variant", record.run_id[:8])
 
 
 def fetch_runs(cfg: ExperimentConfig, root: str | Path = ".", stage: str | None = None) -> list[RunRecord]:

@@ -74,3 +74,17 @@ def test_disabled_tracking_is_a_noop(tmp_path):
         assert run.run_id is None
     assert not list(tmp_path.iterdir())
 
+
+
+def test_newest_finished_keeps_the_first_finished_run_per_key_in_newest_first_order():
+    from m3t.experiment import RunRecord, newest_finished, variant_of
+
+    def run(run_id, status, variant=None):
+        return RunRecord(run_id, "evaluate-smlm", 0, status, {}, {}, None, {"variant": variant} if variant else {})
+
+    records = [run("a-running", "RUNNING", "x"), run("b-failed", "FAILED", "y"), run("c-newest-x", "FINISHED", "x"),
+               run("d-newest-y", "FINISHED", "y"), run("e-older-x", "FINISHED", "x"), run("f12345678-untagged", "FINISHED")]
+    newest = newest_finished(records, variant_of)
+    assert list(newest) == ["x", "y", "f1234567"]
+    assert [r.run_id for r in newest.values()] == ["c-newest-x", "d-newest-y", "f12345678-untagged"]
+    assert newest_finished([run("a", "FAILED", "x")], variant_of) == {}

@@ -9,19 +9,11 @@ from __future__ import annotations
 
 import math
 
-from m3t.experiment import RunRecord
+from m3t.experiment import RunRecord, newest_finished, variant_of
 from m3t.metrics.text import SLT_DEFINITION
 
 GT_ROW = "GT motion (upper bound)"
 VARIANT_ORDER = ("production only", "production + translation")
-
-
-def _newest(records: list[RunRecord], key) -> dict[str, RunRecord]:
-    out: dict[str, RunRecord] = {}
-    for record in records:  # newest first
-        if record.status == "FINISHED":
-            out.setdefault(key(record), record)
-    return out
 
 
 def _cell(value: float | None) -> str:
@@ -31,11 +23,10 @@ def _cell(value: float | None) -> str:
 def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRecord]) -> str:
     """Markdown: one row for the ground truth, one per production variant; ``R`` / ``B4`` per language."""
     rows: list[tuple[str, dict[str, float]]] = []
-    gt = _newest(ground_truth, lambda r: "gt")
+    gt = newest_finished(ground_truth, lambda r: "gt")
     if gt:
         rows.append((GT_ROW, {k.removeprefix(f"{SLT_DEFINITION}/"): v for k, v in gt["gt"].metrics.items()}))
-    variants = _newest([r for r in production if any(k.startswith("bt/") for k in r.metrics)],
-                       lambda r: r.tags.get("variant", r.run_id[:8]))
+    variants = newest_finished([r for r in production if any(k.startswith("bt/") for k in r.metrics)], variant_of)
     order = {v: i for i, v in enumerate(VARIANT_ORDER)}
     for name, record in sorted(variants.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])):
         prefix = f"bt/{SLT_DEFINITION}/"

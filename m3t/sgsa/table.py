@@ -18,7 +18,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from m3t.experiment import RunRecord
+from m3t.experiment import RunRecord, newest_finished
 from m3t.metrics.text import SLT_DEFINITION
 
 BLEU_COLUMNS = ("bleu4", "bleu3", "bleu2", "bleu1", "rouge_l")
@@ -74,21 +74,23 @@ def _finished(records: list[RunRecord]) -> list[RunRecord]:
 
 def _by_variant(records: list[RunRecord]) -> dict[tuple[int, int], list[RunRecord]]:
     """(L, N with 0 = inf) -> the runs of that SGSA variant, newest first, one per seed."""
-    out: dict[tuple[int, int], dict[str, RunRecord]] = defaultdict(dict)
-    for record in _finished(records):
+    def variant(record: RunRecord) -> tuple[int, int] | None:
         layers, adjacency = record.params.get("sgsa.decoder_layers"), record.params.get("sgsa.temporal_adjacency")
-        if layers is None or adjacency is None:
-            continue
-        out[(int(layers), int(adjacency))].setdefault(record.tags.get("seed", record.run_id), record)
-    return {k: list(v.values()) for k, v in out.items()}
+        return None if layers is None or adjacency is None else (int(layers), int(adjacency))
+
+    out: dict[tuple[int, int], list[RunRecord]] = defaultdict(list)
+    for (key, _seed), record in newest_finished(records, lambda r: (variant(r), _seed_of(r))).items():
+        if key is not None:
+            out[key].append(record)
+    return dict(out)
+
+
+def _seed_of(record: RunRecord) -> str:
+    return record.tags.get("seed", record.run_id)
 
 
 def _pt_runs(records: list[RunRecord]) -> list[RunRecord]:
-    seen: dict[str, RunRecord] = {}
-    for record in _finished(records):
-        if any(k.startswith("pt/") for k in record.metrics):
-            seen.setdefault(record.tags.get("seed", record.run_id), record)
-    return list(seen.values())
+    return list(newest_finished([r for r in records if any(k.startswith("pt/") for k in r.metrics)], _seed_of).values())
 
 
 def layers_table(records: list[RunRecord]) -> str:

@@ -9,7 +9,7 @@ import csv
 import io
 import math
 
-from m3t.experiment import RunRecord
+from m3t.experiment import RunRecord, newest_finished
 from m3t.slr.evaluate import PAIR_CHANCE_TOP1, Evaluation, Score, evaluations_from_flat
 
 METHODS = {"full": "M3T probe (body, hands, face)", "no_face": "M3T probe w/o face"}
@@ -93,12 +93,10 @@ def table_markdown(evaluations: dict[str, Evaluation], corpus: str, split: str, 
 
 def recognition_table(records: list[RunRecord]) -> str:
     """Tab. 4 as Markdown from the newest finished evaluate-slr run (``records`` newest first), for the CLI."""
-    for record in records:
-        if record.status == "FINISHED":
-            evaluations = evaluations_from_flat(record.metrics, record.tags.get("subsets_reason", ""))
-            order = {v: i for i, v in enumerate(METHODS)}
-            evaluations = dict(sorted(evaluations.items(), key=lambda kv: order.get(kv[0], len(order))))
-            confidence = float(record.params.get("slr_evaluate.confidence", 0.95))
-            return table_markdown(evaluations, record.tags.get("corpus", "?"), record.tags.get("split", "?"),
-                                  confidence)
+    for record in newest_finished(records, lambda r: "newest").values():
+        evaluations = evaluations_from_flat(record.metrics, record.tags.get("subsets_reason", ""))
+        order = {v: i for i, v in enumerate(METHODS)}
+        evaluations = dict(sorted(evaluations.items(), key=lambda kv: order.get(kv[0], len(order))))
+        confidence = float(record.params.get("slr_evaluate.confidence", 0.95))
+        return table_markdown(evaluations, record.tags.get("corpus", "?"), record.tags.get("split", "?"), confidence)
     return "no finished evaluate-slr runs yet: run `dvc repro evaluate-slr`"

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from m3t.experiment import RunRecord
+from m3t.experiment import RunRecord, newest_finished
 
 COLUMNS = (("dtw_pa_jpe_body_m", "PA body"), ("dtw_pa_jpe_hand_m", "PA hand"),
            ("dtw_jpe_body_m", "JPE body"), ("dtw_jpe_hand_m", "JPE hand"))
@@ -20,10 +20,7 @@ def _fmt(value: float | None) -> str:
 
 def production_table(records: list[RunRecord], variant_tag: str = "variant") -> str:
     """Markdown table over the newest finished run of each variant; ``records`` newest first."""
-    rows: dict[str, RunRecord] = {}
-    for record in records:
-        if record.status == "FINISHED":
-            rows.setdefault(record.tags.get(variant_tag, record.run_id[:8]), record)
+    rows = newest_finished(records, lambda r: r.tags.get(variant_tag, r.run_id[:8]))
     if not rows:
         return "no finished evaluate-smlm runs yet: run `dvc repro evaluate-smlm`"
     groups = sorted({k.rsplit("/", 1)[0] for r in rows.values() for k in r.metrics if k.endswith("/dtw_jpe_body_m")})

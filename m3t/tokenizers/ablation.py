@@ -11,7 +11,7 @@ import itertools
 import math
 from typing import Iterable
 
-from m3t.experiment import RunRecord
+from m3t.experiment import RunRecord, newest_finished
 
 CPU_WIDTHS = (32, 64, 128)
 PAPER_WIDTHS = (512, 1024, 2048)
@@ -47,13 +47,9 @@ def _fmt(value: float | None, digits: int) -> str:
 def ablation_table(records: list[RunRecord]) -> str:
     """Markdown table: one row per (quantizer, batch size, width), newest finished run; columns test PA-VPE
     (mm) and codebook utilisation (%) per group."""
-    rows: dict[tuple, RunRecord] = {}
-    for record in records:  # newest first
-        if record.status != "FINISHED":
-            continue
-        key = (record.params.get("tokenizer.quantizer", "?"), int(record.params.get("tokenizer_train.batch_size", 0)),
-               int(record.params.get("tokenizer.width", 0)))
-        rows.setdefault(key, record)
+    rows = newest_finished(records, lambda r: (r.params.get("tokenizer.quantizer", "?"),
+                                               int(r.params.get("tokenizer_train.batch_size", 0)),
+                                               int(r.params.get("tokenizer.width", 0))))
     header = ("| Q | BS | HS | " + " | ".join(f"PA-VPE {g} (mm)" for g in GROUPS) + " | "
               + " | ".join(f"util {g} %" for g in GROUPS) + " | " + " | ".join(f"count SD {g}" for g in GROUPS) + " |")
     lines = [header, "|" + "---|" * (3 + 3 * len(GROUPS))]
