@@ -17,11 +17,12 @@ Then one trial each of: a corrupt cached part file (refitted, not read), two run
 second refused, naming the first's pid), a disk full during a shard write (simulated ``ENOSPC``: the previous
 shard intact, no temporary file, an error naming the file).
 
-    python benchmarks/bench_faults.py [--kills 5] [--jobs fit-corpus,fit-corpus-dask,tokenizers,smlm]
-                                      [--clips 6] [--seed 0] [--out benchmarks/results/faults.json]
+    python benchmarks/bench_faults.py [--kills 5] [--clips 6] [--seed 0] [--out benchmarks/results/faults.json]
+        [--jobs fit-corpus,fit-corpus-dask,tokenizers,smlm,backtranslation,slr,sgsa]
 
 Writes the JSON and a Markdown table beside it (``faults.md``). Jobs run one after the other; the fit-corpus
-reference feeds the trainers (its shards), and the tokenizer reference feeds the SMLM (through ``tokenize``).
+reference feeds the trainers (its shards), and the tokenizer reference feeds the SMLM (through ``tokenize``) and
+the recognition probe.
 """
 from __future__ import annotations
 
@@ -41,7 +42,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-JOBS = ("fit-corpus", "fit-corpus-dask", "tokenizers", "smlm")
+JOBS = ("fit-corpus", "fit-corpus-dask", "tokenizers", "smlm", "backtranslation", "slr", "sgsa")
+TRAINERS = ("tokenizers", "smlm", "backtranslation", "slr", "sgsa")  # they read the fitted shards
+# these need the whole tiny corpus (sentences for the judge and SGSA, isolated signs in every split for the probe),
+# fitted into shards of their own; the others train on the first --clips clips
+WHOLE_CORPUS = ("backtranslation", "slr", "sgsa")
 
 
 @dataclass(frozen=True)
@@ -72,13 +77,18 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
         "fitting": {"iterations": iterations, "camera_iterations": max(iterations // 2, 1)},
         "fit_corpus": {"cache_dir": str(root / "fit-cache"), "max_clips": clips, "render_clips": 0},
         "tokenizer_train": {"cache_dir": str(root / "tok-cache"), "epochs": 4},
-        "smlm_train": {"cache_dir": str(root / "smlm-cache"), "epochs": 4}}
+        "smlm_train": {"cache_dir": str(root / "smlm-cache"), "epochs": 4},
+        # more epochs than the others: their models are smaller, and a kill should mostly land in training
+        "backtranslation_train": {"cache_dir": str(root / "bt-cache"), "epochs": 12},
+        "slr_train": {"cache_dir": str(root / "slr-cache"), "epochs": 12},
+        "sgsa_train": {"cache_dir": str(root / "sgsa-cache"), "epochs": 12}}
     files = {}
     # "slow": fits long enough that a second run starts while the first still holds its lock
-    for name, fit_corpus, fitting in (("local", {}, {}), ("dask", {"executor": "dask", "workers": 2}, {}),
-                                      ("slow", {}, {"iterations": 150, "camera_iterations": 30})):
-        over = {**overrides, "fit_corpus": {**overrides["fit_corpus"], **fit_corpus},
-                "fitting": {**overrides["fitting"], **fitting}}
+    whole = {"data": {**overrides["data"], "shards_root": str(root / "shards-all"),
+                      "tokens_root": str(root / "tokens-all")}, "fit_corpus": {"max_clips": 0}}
+    for name, extra in (("local", {}), ("dask", {"fit_corpus": {"executor": "dask", "workers": 2}}),
+                        ("slow", {"fitting": {"iterations": 150, "camera_iterations": 30}}), ("all", whole)):
+        over = {**overrides, **{k: {**overrides[k], **v} for k, v in extra.items()}}
         params = load_params(ROOT / "params.yaml", preset="tiny", overrides=over)
         files[name] = root / f"params-{name}.yaml"
         files[name].write_text(yaml.safe_dump(to_dict(params), sort_keys=False))
@@ -90,6 +100,12 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
         "tokenizers": Job("tokenizers", "train_tokenizers", files["local"], (root / "tok-cache", models / "tokenizers"),
                           (models / "tokenizers",)),
         "smlm": Job("smlm", "train_smlm", files["local"], (root / "smlm-cache", models / "smlm"), (models / "smlm",)),
+        "fit-all": Job("fit-all", "fit_corpus", files["all"], (fit_cache, root / "shards-all" / "synthetic"),
+                       (root / "shards-all" / "synthetic",)),
+        "backtranslation": Job("backtranslation", "train_backtranslation", files["all"],
+                               (root / "bt-cache", models / "backtranslation"), (models / "backtranslation",)),
+        "slr": Job("slr", "train_slr", files["all"], (root / "slr-cache", models / "slr"), (models / "slr",)),
+        "sgsa": Job("sgsa", "train_sgsa", files["all"], (root / "sgsa-cache", models / "sgsa"), (models / "sgsa",)),
     }
 
 
@@ -224,11 +240,14 @@ def kill_trials(job: Job, kills: int, rng: random.Random, logs: Path, scratch: P
         log = logs / f"{job.name}-trial{i}.log"
         ran, finished, alive = kill_after(job.stage, job.params, log, at)
         before = parts(job.state[0]) if job.stage == "fit_corpus" else {}
+        # what the rerun can resume from: finished parts, or the trainer's resumable checkpoint
+        saved = [k for k in files_under((job.state[0],)) if k not in leftovers((job.state[0],))]
         rerun = run_to_end(job.stage, job.params, log)
         problems = compare(reference, job.outputs)
         problems += [f"left behind: {k}" for k in leftovers(job.state)]
         problems += [f"process {pid} of the killed group still alive" for pid in alive]
-        trial = {"kill_at_s": round(ran, 2), "finished_before_kill": finished, "rerun_s": round(rerun, 2),
+        trial = {"kill_at_s": round(ran, 2), "finished_before_kill": finished, "state_at_kill": bool(saved),
+                 "rerun_s": round(rerun, 2),
                  "time_lost_s": round(rerun - (ref_seconds - ran), 2)}
         if job.stage == "fit_corpus":
             after = parts(job.state[0])
@@ -245,7 +264,9 @@ def kill_trials(job: Job, kills: int, rng: random.Random, logs: Path, scratch: P
     lost = [t["time_lost_s"] for t in trials if not t["finished_before_kill"]]
     return {"reference_s": round(ref_seconds, 2), "trials": len(trials),
             "failures": sum(bool(t["problems"]) for t in trials),
-            "killed_mid_run": len(lost), "time_lost_mean_s": round(sum(lost) / len(lost), 2) if lost else None,
+            "killed_mid_run": len(lost),
+            "resumed_from_state": sum(t["state_at_kill"] and not t["finished_before_kill"] for t in trials),
+            "time_lost_mean_s": round(sum(lost) / len(lost), 2) if lost else None,
             "time_lost_max_s": max(lost) if lost else None, "parts_total": total_parts or None, "runs": trials}
 
 
@@ -360,13 +381,14 @@ def disk_full_trial(scratch: Path) -> dict:
 
 # ---- the report ---------------------------------------------------------------------------------------------
 def markdown(result: dict) -> str:
-    rows = ["| job | trials | failures | killed mid-run | time lost per resume, mean / max (s) | reference (s) |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| job | trials | failures | killed mid-run | of which resumed from saved state | "
+            "time lost per resume, mean / max (s) | reference (s) |", "|---|---|---|---|---|---|---|"]
     for name, r in result["jobs"].items():
         rows.append(f"| {name} | {r['trials']} | {r['failures']} | {r['killed_mid_run']} | "
-                    f"{r['time_lost_mean_s']} / {r['time_lost_max_s']} | {r['reference_s']} |")
+                    f"{r.get('resumed_from_state', '-')} | {r['time_lost_mean_s']} / {r['time_lost_max_s']} | "
+                    f"{r['reference_s']} |")
     for name, r in result["faults"].items():
-        rows.append(f"| {name} | {r['trials']} | {r['failures']} | - | - | - |")
+        rows.append(f"| {name} | {r['trials']} | {r['failures']} | - | - | - | - |")
     head = (f"Fault injection (`python benchmarks/bench_faults.py --kills {result['kills']}`): {result['clips']} "
             f"clips, seed {result['seed']}; {result['trials']} trials, {result['failures']} failures.\n\n")
     return head + "\n".join(rows) + "\n"
@@ -384,14 +406,15 @@ def run(kills: int, jobs: list[str], clips: int, iterations: int, seed: int, roo
     run_to_end("generate_corpus", defined["fit-corpus"].params, logs / "generate-corpus.log")
     result: dict = {"kills": kills, "clips": clips, "iterations": iterations, "seed": seed, "jobs": {}, "faults": {}}
     fit = defined["fit-corpus"]
-    needs_fit = any(j in jobs for j in ("fit-corpus", "tokenizers", "smlm"))
+    needs_fit = any(j in jobs for j in ("fit-corpus", *TRAINERS))
     for name in jobs:
-        if name in ("tokenizers", "smlm") and not (fit.outputs[0] / "train.parquet").exists():
-            clear(fit)
-            run_to_end(fit.stage, fit.params, logs / "fit-corpus-for-trainers.log")
-        if name == "smlm" and not list((root / "models" / "tokenizers").glob("*.pt")):
+        source = defined["fit-all"] if name in WHOLE_CORPUS else fit
+        if name in TRAINERS and not (source.outputs[0] / "train.parquet").exists():
+            clear(source)
+            run_to_end(source.stage, source.params, logs / f"{source.name}-for-trainers.log")
+        if name in ("smlm", "slr") and not list((root / "models" / "tokenizers").glob("*.pt")):
             clear(defined["tokenizers"])
-            run_to_end("train_tokenizers", fit.params, logs / "tokenizers-for-smlm.log")
+            run_to_end("train_tokenizers", source.params, logs / "tokenizers-for-trainers.log")
         if name == "smlm":
             run_to_end("tokenize", fit.params, logs / "tokenize.log")
         result["jobs"][name] = kill_trials(defined[name], kills, rng, logs, scratch)

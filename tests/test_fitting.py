@@ -105,3 +105,21 @@ def test_acceleration_loss_zero_for_constant_velocity():
     points = torch.cat([t * 0.01, t * 0.0, t * 0.02], dim=-1).expand(10, 4, 3)
     assert float(acceleration_loss(points)) == pytest.approx(0.0, abs=1e-8)
     assert float(acceleration_loss(points ** 2)) > 0
+
+
+def test_consolidated_summary_does_not_depend_on_completion_order(tmp_path):
+    """A resumed or distributed run finishes its clips in another order; the means must still be summed in clip
+    order, or ``summary.json`` differs in the last digit from an uninterrupted run's (seen in the kill harness:
+    ``(0.1 + 0.2) + 0.3 != (0.3 + 0.2) + 0.1``)."""
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.report import ClipOutcome, consolidate
+
+    outcomes = [ClipOutcome(f"clip-{i}", "train", "fitted", metrics={"pa_joint_mm": v}, frames=10,
+                            seconds=1.0)
+                for i, v in enumerate((0.1, 0.2, 0.3))]
+    written = []
+    for order, name in ((outcomes, "a"), (outcomes[::-1], "b")):
+        consolidate(order, smplfx_layout(), tmp_path / name, "synthetic", 1.0)
+        written.append((tmp_path / name / "summary.json").read_bytes())
+    assert written[0] == written[1]
+    assert b"0.20000000000000004" in written[0]  # (0.1 + 0.2 + 0.3) / 3 summed in clip order

@@ -92,9 +92,12 @@ def consolidate(outcomes: list[ClipOutcome], layout: ModalityLayout, shards_dir:
     """Gather part files into one shard per split; write the quarantine report, summary and quality report."""
     out_dir = Path(shards_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # completion order varies (workers, a resumed run's cached clips first): every output is built in clip order,
+    # so a float mean sums in the same order and a resumed run writes the same bytes as an uninterrupted one
+    outcomes = sorted(outcomes, key=lambda o: (o.clip_id, o.file or "", o.row or 0))
     # Every standard split gets a shard (possibly empty), so downstream stages and DVC outputs always exist.
     by_split: dict[str, list[FittedClip]] = {split: [] for split in SPLITS}
-    for o in sorted(outcomes, key=lambda o: o.clip_id):
+    for o in outcomes:
         if o.part is not None:
             by_split.setdefault(o.split, []).extend(read_shard(o.part).clips)
     shards = {split: str(write_shard(out_dir / f"{split}.parquet", clips, layout)) for split, clips in by_split.items()}
@@ -103,7 +106,6 @@ def consolidate(outcomes: list[ClipOutcome], layout: ModalityLayout, shards_dir:
             stale.unlink()
     quarantine = [{"clip_id": o.clip_id, "split": o.split, "file": o.file, "row": o.row, "reason": o.reason,
                    "group": o.group} for o in outcomes if o.status == "quarantined"]
-    quarantine.sort(key=lambda q: (q["clip_id"], q["file"] or "", q["row"] or 0))  # completion order varies
     write_jsonl(out_dir / "quarantine.jsonl", quarantine)
     summary = summarise(outcomes)
     write_json(out_dir / "summary.json", {k: _finite_or_none(v) for k, v in summary.items()})
