@@ -85,7 +85,9 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
     files = {}
     # "slow": fits long enough that a second run starts while the first still holds its lock
     whole = {"data": {**overrides["data"], "shards_root": str(root / "shards-all"),
-                      "tokens_root": str(root / "tokens-all")}, "fit_corpus": {"max_clips": 0}}
+                      "tokens_root": str(root / "tokens-all")},
+             "fit_corpus": {"max_clips": 0, "cache_dir": str(root / "fit-cache-all")}}  # its own: the part trials
+                                                                                     # pick from the 6-clip cache
     for name, extra in (("local", {}), ("dask", {"fit_corpus": {"executor": "dask", "workers": 2}}),
                         ("slow", {"fitting": {"iterations": 150, "camera_iterations": 30}}), ("all", whole)):
         over = {**overrides, **{k: {**overrides[k], **v} for k, v in extra.items()}}
@@ -100,7 +102,7 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
         "tokenizers": Job("tokenizers", "train_tokenizers", files["local"], (root / "tok-cache", models / "tokenizers"),
                           (models / "tokenizers",)),
         "smlm": Job("smlm", "train_smlm", files["local"], (root / "smlm-cache", models / "smlm"), (models / "smlm",)),
-        "fit-all": Job("fit-all", "fit_corpus", files["all"], (fit_cache, root / "shards-all" / "synthetic"),
+        "fit-all": Job("fit-all", "fit_corpus", files["all"], (root / "fit-cache-all", root / "shards-all" / "synthetic"),
                        (root / "shards-all" / "synthetic",)),
         "backtranslation": Job("backtranslation", "train_backtranslation", files["all"],
                                (root / "bt-cache", models / "backtranslation"), (models / "backtranslation",)),

@@ -265,7 +265,8 @@ class EpochTail:
         (same run key) stops with an error naming the first one's pid instead of both writing one ``last``."""
         if self.last_path is not None and self.is_main:
             self._lock.enter_context(run_lock(self.last_path.with_name(self.last_path.name + ".lock"), f"training {what}"))
-            remove_stale_temps(self.last_path)  # a run killed while writing ``last`` left its temporary file
+            for path in (self.last_path, self.best_path):  # a run killed while writing one left its temporary file
+                remove_stale_temps(path)
         if self.last_path is None or not self.last_path.exists():
             return self.epoch
         loaded = load(self.last_path)

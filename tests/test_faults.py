@@ -83,15 +83,18 @@ def test_second_training_on_one_last_checkpoint_is_refused(tmp_path):
 
 
 def test_a_resumed_training_removes_the_temp_file_of_a_killed_checkpoint_write(tmp_path):
-    """A run killed while writing its ``last`` checkpoint leaves ``.run.last.pt.<hex>.tmp`` (seen in the kill
-    harness); the rerun, holding the lock, removes it and keeps everything else."""
+    """A run killed while writing its ``last`` or ``best`` checkpoint leaves ``.run.last.pt.<hex>.tmp`` (seen in
+    the kill harness, on the tokenizers and on SGSA); the rerun, holding the run's lock, removes both and keeps
+    every other file."""
     import torch
 
     from m3t.training import EpochTail, Selection
 
     stale = tmp_path / ".run.last.pt.0123456789ab.tmp"
     stale.write_bytes(b"half a checkpoint")
-    other = tmp_path / ".run.best.pt.0123456789ab.tmp"  # another file's temporary: not this lock's to remove
+    stale_best = tmp_path / ".run.best.pt.0123456789ab.tmp"
+    stale_best.write_bytes(b"half a best checkpoint")
+    other = tmp_path / ".other.last.pt.0123456789ab.tmp"  # another run's temporary: not this lock's to remove
     other.write_bytes(b"x")
     model = torch.nn.Linear(2, 2)
     optim = torch.optim.SGD(model.parameters(), lr=0.1)
@@ -99,7 +102,7 @@ def test_a_resumed_training_removes_the_temp_file_of_a_killed_checkpoint_write(t
                      save=lambda *a: None, best_path=tmp_path / "run.best.pt", last_path=tmp_path / "run.last.pt")
     assert tail.resume_saved(model, lambda p: None, "the test model") == 0
     tail.result(model)
-    assert not stale.exists() and other.exists()
+    assert not stale.exists() and not stale_best.exists() and other.exists()
 
 
 def test_a_killed_lock_holder_does_not_block_the_rerun(tmp_path):

@@ -1,0 +1,229 @@
+"""Mutation testing of the core library: how many small, plausible code changes the tests notice.
+
+mutmut (configured in ``pyproject.toml`` ``[tool.mutmut]``) copies ``m3t/`` to ``mutants/``, plants every mutant
+of the core modules (``body``, ``fitting``, ``metrics``, ``tokenizers``, ``smlm``, ``shards``, ``corpora``): a
+flipped comparison or operator, a changed constant or string, a dropped argument, ``None`` for a value. For each
+mutant it runs the tests of the selection that call the mutated function (forked, so imports are paid once). A
+mutant is *killed* when a test fails, *timeout* when the tests run 15x longer than clean (an infinite loop: also
+detected), *survived* when every test passes, *no tests* when no selected test calls the function.
+
+    python benchmarks/mutation.py --sample 1000    # a seeded random sample (what a 2-core machine does in ~1 h)
+    python benchmarks/mutation.py                  # every mutant (~19,000: hours; use --max-children 16)
+    python benchmarks/mutation.py --report-only    # rewrite the report from the verdicts in mutants/
+
+Writes ``benchmarks/results/mutation.md`` (per module: counts, the detection rate with its Wilson 95% interval
+when sampled; then every survivor with its diff and every untested function, grouped by function) and
+``mutation.json``, and logs the numbers to MLflow. Runs resume: finished mutants keep their verdict, and after a
+code change mutmut retests only the mutants of changed functions.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import datetime as dt
+import json
+import math
+import os
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DETECTED = ("killed", "timeout", "caught by type check")
+SURVIVED = ("survived",)
+UNTESTED = ("no tests",)
+
+
+# mutmut 3.8's first steps of `mutmut run` (copy the package, plant the mutants), without running any test: the
+# sample is drawn from the mutants it plants
+GENERATE = """
+from pathlib import Path
+import mutmut.__main__ as m
+m.set_mutant_under_test("mutant_generation")
+Path("mutants").mkdir(exist_ok=True)
+m.copy_src_dir(); m.copy_also_copy_files(); m.setup_source_paths(); m.store_lines_covered_by_tests()
+m.create_mutants({children})
+"""
+SAMPLE_FILE = ROOT / "mutants" / "sample.json"
+
+
+def wilson(hits: int, n: int, z: float = 1.96) -> tuple[float, float] | None:
+    """Wilson score 95% interval of a proportion, in percent."""
+    if n == 0:
+        return None
+    p = hits / n
+    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return (round(100 * (centre - half) / (1 + z * z / n), 1), round(100 * (centre + half) / (1 + z * z / n), 1))
+
+
+def module_of(path: Path) -> str:
+    """``m3t/fitting/corpus.py`` -> ``fitting``."""
+    return path.relative_to(ROOT / "mutants" / "m3t").parts[0]
+
+
+def verdicts() -> list[dict]:
+    """One row per mutant from mutmut's ``.meta`` files: name, source file, module, function, status."""
+    from mutmut.stats import status_by_exit_code
+
+    rows = []
+    for meta in sorted((ROOT / "mutants" / "m3t").rglob("*.py.meta")):
+        data = json.loads(meta.read_text())
+        source = meta.with_suffix("")  # mutants/m3t/x/y.py
+        for name, code in data["exit_code_by_key"].items():
+            function = name.rsplit("__mutmut_", 1)[0]
+            rows.append({"name": name, "file": str(source.relative_to(ROOT / "mutants")), "module": module_of(source),
+                         "function": function, "status": status_by_exit_code[code],
+                         "seconds": data.get("durations_by_key", {}).get(name)})
+    if not rows:
+        raise SystemExit("no mutmut results under mutants/: run `python benchmarks/mutation.py` first")
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    """Counts per module and overall; ``detection_pct`` = (killed + timeout) / every checked mutant."""
+    def counts(subset: list[dict]) -> dict:
+        c = collections.Counter(r["status"] for r in subset)
+        checked = sum(v for k, v in c.items() if k not in ("not checked", "skipped"))
+        detected = sum(c[k] for k in DETECTED)
+        return {"mutants": len(subset), "checked": checked, "killed": c["killed"], "timeout": c["timeout"],
+                "detection_ci95": wilson(detected, checked),
+                "survived": c["survived"], "no_tests": c["no tests"],
+                "other": checked - detected - c["survived"] - c["no tests"],
+                "not_checked": c["not checked"],
+                "detection_pct": round(100.0 * detected / checked, 1) if checked else None,
+                "detection_of_tested_pct": round(100.0 * detected / (checked - c["no tests"]), 1)
+                if checked - c["no tests"] else None}
+
+    modules = sorted({r["module"] for r in rows})
+    return {"modules": {m: counts([r for r in rows if r["module"] == m]) for m in modules}, "total": counts(rows)}
+
+
+def diff_lines(name: str, file: str) -> list[str]:
+    """The changed lines of one mutant (``-`` original, ``+`` mutant), from mutmut's own diff."""
+    from mutmut.mutation.diff_apply import get_diff_for_mutant
+
+    try:
+        diff = get_diff_for_mutant(name, path=Path(file))
+    except Exception as exc:  # noqa: BLE001 - a report line, not a reason to stop the report
+        return [f"(diff unavailable: {exc})"]
+    return [line for line in diff.splitlines()
+            if line[:1] in "-+" and not line.startswith(("---", "+++"))]
+
+
+def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
+    total = result["total"]
+    lines = [
+        "# Mutation testing of the core library",
+        "",
+        f"mutmut {result['mutmut']} on commit `{result['commit']}`, {result['date']}; command: "
+        "`python benchmarks/mutation.py` (configuration: `pyproject.toml` `[tool.mutmut]`).",
+        f"Run time: {result['run_seconds'] / 60:.0f} min with {result['max_children']} workers"
+        if result.get("run_seconds") else "Run time: not measured (report rewritten from stored verdicts).",
+        "",
+        "*Detected* = killed + timeout. *Detection* is over every checked mutant; *of tested* leaves out the "
+        "mutants of functions no selected test calls (listed below, each one a missing test).",
+        "",
+        (f"**A seeded random sample** of {result['sample']} of the {result['population']} mutants (seed "
+         f"{result['seed']}): each rate carries its Wilson 95% interval." if result.get("sample") else
+         f"Every one of the {result['population']} mutants."),
+        "",
+        "| module | mutants | killed | timeout | survived | no tests | other | detection % (95% CI) | of tested % |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, c in [*result["modules"].items(), ("**all**", total)]:
+        ci = f" ({c['detection_ci95'][0]}-{c['detection_ci95'][1]})" if c["detection_ci95"] and result.get("sample") else ""
+        lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['survived']} | {c['no_tests']} "
+                     f"| {c['other']} | {c['detection_pct']}{ci} | {c['detection_of_tested_pct']} |")
+    if total["not_checked"]:
+        lines += ["", f"**{total['not_checked']} mutants are not checked yet** (the run was stopped): rerun the "
+                  "command to finish; the numbers above count checked mutants only."]
+    notes = result.get("notes", [])
+    if notes:
+        lines += ["", *notes]
+    for title, statuses in (("Survivors", SURVIVED), ("Functions no selected test calls", UNTESTED),
+                            ("Other outcomes (suspicious, segfault)", None)):
+        chosen = [r for r in rows if (r["status"] in statuses if statuses else
+                                      r["status"] not in (*DETECTED, *SURVIVED, *UNTESTED, "not checked"))]
+        lines += ["", f"## {title} ({len(chosen)})", ""]
+        by_function: dict[tuple[str, str], list[dict]] = collections.defaultdict(list)
+        for r in chosen:
+            by_function[(r["file"], r["function"])].append(r)
+        for (file, function), group in sorted(by_function.items(), key=lambda kv: (-len(kv[1]), kv[0])):
+            lines.append(f"- `{file}` `{function.rsplit('.', 1)[-1].removeprefix('x_').replace('__mutmut_', '')}`: "
+                         f"{len(group)}")
+            if statuses == UNTESTED:
+                continue
+            for r in group:
+                changed = [line.strip() for line in diff_lines(r["name"], r["file"])]
+                text = " / ".join(changed)[:300].replace("`", "'")
+                lines.append(f"  - `{r['name'].rsplit('__mutmut_', 1)[-1]}` ({r['status']}): `{text}`")
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_md.with_suffix(".md.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, out_md)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--max-children", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--sample", type=int, default=0, help="test a seeded random sample of this many mutants "
+                        "(0: all)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--report-only", action="store_true", help="write the report from the stored verdicts")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "mutation.json"))
+    args = parser.parse_args(argv)
+    os.chdir(ROOT)  # mutmut works in the repository root (mutants/ beside m3t/)
+    import mutmut
+
+    seconds = None
+    if not args.report_only:
+        log = ROOT / "mutants" / "run.log"
+        log.parent.mkdir(exist_ok=True)
+        names: list[str] = []
+        if args.sample:
+            subprocess.run([sys.executable, "-c", GENERATE.format(children=args.max_children)], cwd=ROOT, check=True,
+                           stdout=subprocess.DEVNULL)
+            population = sorted(r["name"] for r in verdicts())
+            names = sorted(random.Random(args.seed).sample(population, min(args.sample, len(population))))
+            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": names}))
+        else:
+            SAMPLE_FILE.unlink(missing_ok=True)
+        print(f"mutmut run --max-children {args.max_children}"
+              f"{f' on {len(names)} sampled mutants' if names else ''} (progress in {log}) ...", flush=True)
+        began = time.perf_counter()
+        with open(log, "w") as fh:
+            rc = subprocess.call([str(Path(sys.executable).with_name("mutmut")), "run", "--max-children",
+                                  str(args.max_children), *names], stdout=fh, stderr=subprocess.STDOUT)
+        seconds = round(time.perf_counter() - began, 1)
+        if rc != 0:
+            tail = log.read_text(errors="replace")[-3000:]
+            raise SystemExit(f"mutmut run failed (exit {rc}); the end of {log}:\n{tail}")
+    rows = verdicts()
+    sample = json.loads(SAMPLE_FILE.read_text()) if SAMPLE_FILE.exists() else None
+    population = len(rows)
+    if sample:
+        chosen = set(sample["names"])
+        rows = [r for r in rows if r["name"] in chosen]
+    result = summary(rows)
+    result.update({"population": sample["population"] if sample else population,
+                   "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None})
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    result.update({"mutmut": mutmut.__version__, "commit": commit or "?", "date": dt.date.today().isoformat(),
+                   "run_seconds": seconds, "max_children": args.max_children})
+    out = Path(args.out)
+    write_report(rows, result, out.with_suffix(".md"))
+    from report import write_and_log
+
+    flat = {"detection_pct": result["total"]["detection_pct"], "mutants": result["total"]["mutants"],
+            "survived": result["total"]["survived"], "no_tests": result["total"]["no_tests"], "run_seconds": seconds}
+    flat.update({f"{m}_detection_pct": c["detection_pct"] for m, c in result["modules"].items()})
+    write_and_log({**flat, "detail": result}, out, "bench-mutation")
+    return result
+
+
+if __name__ == "__main__":
+    main()
