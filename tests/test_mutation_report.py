@@ -1,0 +1,39 @@
+"""The arithmetic of the mutation report (``benchmarks/mutation.py``): what counts as detected, what is left out of
+the rate, and the interval of a sampled rate. The mutmut run itself is the benchmark command, not a test."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import mutation  # noqa: E402
+
+
+def rows(module: str, **counts: int) -> list[dict]:
+    return [{"name": f"m3t.{module}.f__mutmut_{status}{i}", "module": module, "status": status.replace("_", " ")}
+            for status, n in counts.items() for i in range(n)]
+
+
+def test_timeouts_count_as_detected_and_unchecked_mutants_stay_out_of_the_rate():
+    result = mutation.summary(rows("metrics", killed=6, timeout=2, survived=1, no_tests=1, not_checked=5)
+                              + rows("body", killed=1, survived=3))
+    metrics, body, total = result["modules"]["metrics"], result["modules"]["body"], result["total"]
+    assert (metrics["mutants"], metrics["checked"], metrics["not_checked"]) == (15, 10, 5)
+    assert metrics["detection_pct"] == 80.0  # (6 killed + 2 timeout) / 10 checked
+    assert metrics["detection_of_tested_pct"] == pytest.approx(88.9)  # the untested mutant left out: 8 / 9
+    assert body["detection_pct"] == 25.0 and body["no_tests"] == 0
+    assert total["detection_pct"] == pytest.approx(64.3)  # 9 / 14
+    assert total["survived"] == 4 and total["other"] == 0
+
+
+def test_wilson_interval_brackets_the_rate_and_narrows_with_the_sample():
+    low, high = mutation.wilson(90, 100)
+    assert low < 90.0 < high and (low, high) == (82.6, 94.5)
+    wide, narrow = mutation.wilson(9, 10), mutation.wilson(900, 1000)
+    assert wide[1] - wide[0] > narrow[1] - narrow[0]
+    assert mutation.wilson(0, 0) is None
+    assert mutation.wilson(10, 10)[1] == 100.0
