@@ -123,3 +123,24 @@ def test_consolidated_summary_does_not_depend_on_completion_order(tmp_path):
         written.append((tmp_path / name / "summary.json").read_bytes())
     assert written[0] == written[1]
     assert b"0.20000000000000004" in written[0]  # (0.1 + 0.2 + 0.3) / 3 summed in clip order
+
+
+def test_consolidate_writes_each_quarantine_line_and_counts_this_runs_work(tmp_path):
+    import json
+
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.report import ClipOutcome, consolidate
+
+    outcomes = [ClipOutcome("a", "train", "fitted", metrics={"pa_joint_mm": 1.0}, frames=30, seconds=3.0),
+                ClipOutcome("b", "train", "cached", metrics={"pa_joint_mm": 2.0}, frames=50),
+                ClipOutcome("c", "dev", "quarantined", reason="track has no frames", group="empty track",
+                            file="media/c.mp4", row=7)]
+    report = consolidate(outcomes, smplfx_layout(), tmp_path / "out", "synthetic", 2.0)
+    lines = [json.loads(line) for line in (tmp_path / "out" / "quarantine.jsonl").read_text().splitlines()]
+    assert lines == [{"clip_id": "c", "split": "dev", "file": "media/c.mp4", "row": 7, "reason": "track has no frames",
+                      "group": "empty track"}]
+    assert report.summary["clips_fitted"] == 2 and report.summary["clips_quarantined"] == 1
+    assert report.summary["frames"] == 80
+    assert report.run_stats["clips_fitted_now"] == 1 and report.run_stats["clips_cached"] == 1
+    assert report.run_stats["fit_frames_per_s_per_worker"] == 10.0  # 30 frames fitted now in 3 s
+    assert report.run_stats["fit_frames_per_s_wall"] == 15.0  # over the run's 2 s

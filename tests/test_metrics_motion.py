@@ -273,3 +273,24 @@ def test_summarise_rejects_empty_and_mismatched():
         summarise([])
     with pytest.raises(ValueError, match="pair 1"):
         summarise([{"a": 1.0}, {"b": 1.0}])
+
+
+def test_zero_weights_drop_points_and_negative_or_all_zero_weights_are_refused():
+    """Umeyama's weighted problem: a point of weight 0 must not move the fit (the same transform as without the
+    point), a negative weight or an all-zero set is refused."""
+    from m3t.metrics.procrustes import similarity_transform
+
+    gen = torch.Generator().manual_seed(3)
+    source = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    rotation = torch.as_tensor(Rotation.from_euler("xyz", [0.3, -0.2, 0.5]).as_matrix())
+    target = 1.7 * source @ rotation.T + torch.tensor([0.1, -0.4, 0.2], dtype=torch.float64)
+    target[5] += 3.0  # an outlier: weight 0 must ignore it
+    weights = torch.tensor([1.0, 2.0, 1.0, 0.5, 1.0, 0.0], dtype=torch.float64)
+    full = similarity_transform(source, target, weights=weights)
+    dropped = similarity_transform(source[:5], target[:5], weights=weights[:5])
+    for a, b in ((full.rotation, dropped.rotation), (full.scale, dropped.scale), (full.translation, dropped.translation)):
+        assert torch.allclose(a, b, atol=1e-9)
+    assert torch.allclose(full.rotation, rotation, atol=1e-9) and float(full.scale) == pytest.approx(1.7)
+    for bad in (torch.tensor([1.0, 1, 1, 1, 1, -0.1], dtype=torch.float64), torch.zeros(6, dtype=torch.float64)):
+        with pytest.raises(ValueError, match="non-negative with a positive sum"):
+            similarity_transform(source, target, weights=bad)

@@ -18,12 +18,13 @@ def rows(module: str, **counts: int) -> list[dict]:
             for status, n in counts.items() for i in range(n)]
 
 
-def test_timeouts_count_as_detected_and_unchecked_mutants_stay_out_of_the_rate():
-    result = mutation.summary(rows("metrics", killed=6, timeout=2, survived=1, no_tests=1, not_checked=5)
+def test_timeouts_and_crashes_count_as_detected_and_unchecked_mutants_stay_out_of_the_rate():
+    result = mutation.summary(rows("metrics", killed=5, timeout=2, segfault=1, survived=1, no_tests=1, not_checked=5)
                               + rows("body", killed=1, survived=3))
     metrics, body, total = result["modules"]["metrics"], result["modules"]["body"], result["total"]
     assert (metrics["mutants"], metrics["checked"], metrics["not_checked"]) == (15, 10, 5)
-    assert metrics["detection_pct"] == 80.0  # (6 killed + 2 timeout) / 10 checked
+    assert metrics["detection_pct"] == 80.0  # (5 killed + 2 timeout + 1 crashed) / 10 checked
+    assert (metrics["killed"], metrics["timeout"], metrics["crashed"]) == (5, 2, 1)
     assert metrics["detection_of_tested_pct"] == pytest.approx(88.9)  # the untested mutant left out: 8 / 9
     assert body["detection_pct"] == 25.0 and body["no_tests"] == 0
     assert total["detection_pct"] == pytest.approx(64.3)  # 9 / 14

@@ -237,3 +237,9 @@ def test_dataset_rejects_duplicate_clips(tmp_path, clips):
     write_shard(tmp_path / "b.parquet", clips[:1], LAYOUT)
     with pytest.raises(ValueError, match=r"clip 'clip-0000' is in both .*a\.parquet and .*b\.parquet"):
         ShardDataset([tmp_path / "a.parquet", tmp_path / "b.parquet"])
+
+
+@pytest.mark.parametrize("batch_size, chunk_batches", [(0, 50), (8, 0)])
+def test_sampler_refuses_an_empty_batch_or_chunk(batch_size, chunk_batches):
+    with pytest.raises(ValueError, match=rf"batch_size \({batch_size}\) and chunk_batches \({chunk_batches}\) must be >= 1"):
+        LengthBucketSampler([5, 6, 7], batch_size=batch_size, chunk_batches=chunk_batches)

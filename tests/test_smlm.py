@@ -291,3 +291,12 @@ def test_over_length_clips_are_skipped_for_training_and_cut_for_evaluation(vocab
     assert skipped == [] and [c["clip_id"] for c in cut] == ["long"] and "kept, cut to the limit" in cut[0]["reason"]
     assert found[0].text_ids.tolist() == full[:3] and found[0].motion.shape == (10, len(MOTION_STREAMS))
     assert found[0].motion[:, 0].tolist() == tokens[MOTION_STREAMS[0]][:10].tolist()
+
+
+def test_every_id_has_a_token_name_and_one_past_the_end_is_refused(vocab):
+    names = [vocab.token(i) for i in range(len(vocab))]
+    assert len(set(names)) == len(names)  # one name per id: text pieces, prompts, then each stream's codes
+    last = MOTION_STREAMS[-1]
+    assert names[-1] == vocab.token(int(vocab.motion_ids(last, np.array([vocab.codebooks[last] - 1]))[0]))
+    with pytest.raises(VocabularyError, match=f"id {len(vocab)} outside the vocabulary of {len(vocab)} tokens"):
+        vocab.token(len(vocab))
