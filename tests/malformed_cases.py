@@ -409,6 +409,24 @@ def slt_hostile(tmp: Path):
     return listed("slt_pickle", root, 7)
 
 
+def slt_symlink_out(tmp: Path):
+    """A split file in the root that is a link to a pickle outside it (``build_slt``'s layout, plus the link)."""
+    root = tmp / "slt"
+    fx.build_slt(root)
+    (tmp / "outside").mkdir()
+    shutil.copyfile(root / SLT_TRAIN, tmp / "outside" / "secret.train")
+    (root / "leak.pami0.dev").symlink_to(tmp / "outside" / "secret.train")
+    return listed("slt_pickle", root, 7)
+
+
+def slt_files_escape(tmp: Path):
+    """``corpora.slt_pickle.files`` naming a file above the root through ``..``."""
+    root = tmp / "slt"
+    fx.build_slt(root)
+    shutil.copyfile(root / SLT_TRAIN, tmp / "secret.pami0.train")
+    return listed("slt_pickle", root, 3, files=[SLT_TRAIN, "../secret.pami0.train"])
+
+
 def slt_all_nan(tmp: Path):
     sign = np.full((5, 12), np.nan, np.float32)
     root = slt_entry(tmp, {"name": "train/all_nan", "signer": "s", "gloss": "G", "text": "t", "sign": sign},
@@ -834,6 +852,10 @@ CASES: tuple[Case, ...] = (
     Case("slt-all-nan", "slt_pickle import", "every frame NaN", slt_all_nan, QUARANTINED, SLT_TRAIN,
          "clip train__all_nan: every one of its 5 frames holds NaN or inf"),
     Case("slt-one-frame", "slt_pickle", "sign of shape (1, 12)", slt_one_frame, READ),
+    Case("slt-symlink-out", "slt_pickle", "a split file linked to a pickle outside the root", slt_symlink_out,
+         QUARANTINED, "leak.pami0.dev", "outside the corpus root"),
+    Case("slt-files-escape", "slt_pickle", "corpora.slt_pickle.files = ../secret.pami0.train", slt_files_escape,
+         QUARANTINED, "secret.pami0.train", "could leave the corpus root"),
     # .pose files
     Case("pose-truncated", "posefile", "a .pose file cut in half", pose_listing, QUARANTINED, "index.csv",
          "truncated", row=6),
