@@ -94,7 +94,7 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
         params = load_params(ROOT / "params.yaml", preset="tiny", overrides=over)
         files[name] = root / f"params-{name}.yaml"
         files[name].write_text(yaml.safe_dump(to_dict(params), sort_keys=False))
-    shards, fit_cache = root / "shards" / "synthetic", root / "fit-cache"
+    shards, fit_cache, shards_all = root / "shards" / "synthetic", root / "fit-cache", root / "shards-all" / "synthetic"
     models = root / "models"
     return {
         "fit-corpus": Job("fit-corpus", "fit_corpus", files["local"], (fit_cache, shards), (shards,)),
@@ -102,8 +102,7 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
         "tokenizers": Job("tokenizers", "train_tokenizers", files["local"], (root / "tok-cache", models / "tokenizers"),
                           (models / "tokenizers",)),
         "smlm": Job("smlm", "train_smlm", files["local"], (root / "smlm-cache", models / "smlm"), (models / "smlm",)),
-        "fit-all": Job("fit-all", "fit_corpus", files["all"], (root / "fit-cache-all", root / "shards-all" / "synthetic"),
-                       (root / "shards-all" / "synthetic",)),
+        "fit-all": Job("fit-all", "fit_corpus", files["all"], (root / "fit-cache-all", shards_all), (shards_all,)),
         "backtranslation": Job("backtranslation", "train_backtranslation", files["all"],
                                (root / "bt-cache", models / "backtranslation"), (models / "backtranslation",)),
         "slr": Job("slr", "train_slr", files["all"], (root / "slr-cache", models / "slr"), (models / "slr",)),

@@ -140,7 +140,8 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in [*result["modules"].items(), ("**all**", total)]:
-        ci = f" ({c['detection_ci95'][0]}-{c['detection_ci95'][1]})" if c["detection_ci95"] and result.get("sample") else ""
+        interval = c["detection_ci95"] if result.get("sample") else None
+        ci = f" ({interval[0]}-{interval[1]})" if interval else ""
         lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['crashed']} | {c['survived']} "
                      f"| {c['no_tests']} "
                      f"| {c['other']} | {c['detection_pct']}{ci} | {c['detection_of_tested_pct']} |")
@@ -217,7 +218,8 @@ def main(argv: list[str] | None = None) -> dict:
     result = summary(rows)
     result.update({"population": sample["population"] if sample else population,
                    "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None})
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=ROOT).stdout.strip()
     result.update({"mutmut": mutmut.__version__, "commit": commit or "?", "date": dt.date.today().isoformat(),
                    "run_seconds": seconds, "max_children": args.max_children})
     out = Path(args.out)

@@ -36,9 +36,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @dataclass(frozen=True)
 class Listed:
-    """What a listing (or an import) reported: quarantine entries (file, row, reason), clips kept, clips expected."""
+    """What a listing (or an import) reported: quarantine entries (file, row, reason, clip id), clips kept, clips
+    expected."""
 
-    entries: list[tuple[str, int | None, str]]
+    entries: list[tuple[str, int | None, str, str | None]]
     kept: int
     expected_kept: int
 
@@ -54,7 +55,8 @@ class Read:
 @dataclass(frozen=True)
 class Case:
     """``file`` / ``reason``: fragments the quarantine entry or error message must hold; ``row``: the quarantine
-    entry's row (``None``: not checked). ``gap``: a defect in a file this suite may not fix (the test xfails)."""
+    entry's row (``None``: not checked); ``clip``: the clip id the entry names (``None``: not checked). ``gap``: a
+    defect in a file this suite may not fix (the test xfails)."""
 
     id: str
     reader: str
@@ -65,6 +67,7 @@ class Case:
     reason: str = ""
     row: int | None = None
     gap: str = ""
+    clip: str | None = None
 
 
 def classify(case: Case, tmp: Path) -> tuple[str, str]:
@@ -86,7 +89,7 @@ def _classify(case: Case, tmp: Path) -> tuple[str, str]:
         return (READ if got.ok else SILENT), got.detail
     if isinstance(got, Listed):
         hits = [e for e in got.entries if case.file in e[0] and case.reason in e[2]
-                and (case.row is None or e[1] == case.row)]
+                and (case.row is None or e[1] == case.row) and (case.clip is None or e[3] == case.clip)]
         if hits and got.kept == got.expected_kept:
             return QUARANTINED, f"{hits[0][0]} row {hits[0][1]}: {hits[0][2]}"
         if hits:
@@ -100,7 +103,8 @@ def listed(name: str, root: Path, expected_kept: int, **options) -> Listed:
     from m3t.corpora.base import open_corpus
 
     listing = open_corpus(name, root, **options).listing()
-    return Listed([(q.file, q.row, q.reason) for q in listing.quarantined], len(listing.clips), expected_kept)
+    entries = [(q.file, q.row, q.reason, q.clip_id) for q in listing.quarantined]
+    return Listed(entries, len(listing.clips), expected_kept)
 
 
 def append(path: Path, text: str) -> None:
@@ -122,7 +126,7 @@ def imported(name: str, root: Path, expected_kept: int, **options) -> Listed:
             import_clip(clip, kind, corpus.source(clip), "k", ImportSettings("smplfx", 100))
             kept += 1
         except ClipRefused as exc:
-            entries.append((clip.media, None, str(exc)))
+            entries.append((clip.media, None, str(exc), clip.id))
     return Listed(entries, kept, expected_kept)
 
 
@@ -305,7 +309,7 @@ def mead_clip(change: Callable[[dict], dict] | None = None, raw: bytes | None = 
         try:
             corpus.source(clip)
         except ClipRefused as exc:
-            return Listed([(clip.media, None, str(exc))], len(listing.clips), len(listing.clips))
+            return Listed([(clip.media, None, str(exc), clip.id)], len(listing.clips), len(listing.clips))
         return Read(False, f"{clip.media} read")
 
     return run
@@ -801,14 +805,14 @@ CASES: tuple[Case, ...] = (
          "not a readable pickle"),
     Case("csl-daily-empty-text", "csl_daily", "label_word []",
          csl_edit(lambda d: d["info"].append({**d["info"][0], "name": "S200000_P0000_T00", "label_word": []}),
-                  "S200000_P0000_T00|train"), QUARANTINED, CSL_PKL, "label_word is empty"),
+                  "S200000_P0000_T00|train"), QUARANTINED, CSL_PKL, "label_word is empty", clip="S200000_P0000_T00"),
     Case("csl-daily-duplicate-id", "csl_daily", "a name twice in the pickle",
          csl_edit(lambda d: d["info"].append(dict(d["info"][1]))), QUARANTINED, CSL_PKL, "duplicate clip id"),
     Case("csl-daily-path-traversal", "csl_daily", "name '../../S900000_P0000_T00'",
          csl_edit(_csl_up, "../../S900000_P0000_T00|train"), QUARANTINED, CSL_PKL, "'..' component"),
     Case("csl-daily-wrong-type", "csl_daily", "label_gloss a number, not a list",
          csl_edit(lambda d: d["info"].append({**d["info"][0], "name": "S200001_P0000_T00", "label_gloss": 7}),
-                  "S200001_P0000_T00|train"), QUARANTINED, CSL_PKL, "label_gloss"),
+                  "S200001_P0000_T00|train"), QUARANTINED, CSL_PKL, "label_gloss", clip="S200001_P0000_T00"),
     # NMFs-CSL
     Case("nmfs-csl-malformed-row", "nmfs_csl", "a path without a class", nmfs_row("P07/3_01.mp4"), QUARANTINED,
          "test.txt", "malformed row", row=5),

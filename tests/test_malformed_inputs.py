@@ -64,13 +64,17 @@ def test_classify_tells_the_outcomes_apart(tmp_path):
     named = Case("n", "r", "i", lambda tmp: raise_(ValueError(f"{tmp}/a.csv line 2: bad header")), CLEAR, "a.csv",
                  "bad")
     assert classify(named, tmp_path) == (CLEAR, "ValueError: <tmp>/a.csv line 2: bad header")
-    lost = Case("l", "r", "i", lambda tmp: Listed([("a.csv", 3, "bad row")], 4, 5), QUARANTINED, "a.csv", "bad", row=3)
+    lost = Case("l", "r", "i", lambda tmp: Listed([("a.csv", 3, "bad row", None)], 4, 5), QUARANTINED, "a.csv", "bad",
+                row=3)
     assert classify(lost, tmp_path)[0] == SILENT  # quarantined, but another clip went missing
-    other_row = Case("o", "r", "i", lambda tmp: Listed([("a.csv", 4, "bad row")], 5, 5), QUARANTINED, "a.csv", "bad",
-                     row=3)
+    other_row = Case("o", "r", "i", lambda tmp: Listed([("a.csv", 4, "bad row", None)], 5, 5), QUARANTINED, "a.csv",
+                     "bad", row=3)
     assert classify(other_row, tmp_path)[0] == SILENT
-    assert classify(Case("q", "r", "i", lambda tmp: Listed([("a.csv", 3, "bad row")], 5, 5), QUARANTINED, "a.csv",
+    assert classify(Case("q", "r", "i", lambda tmp: Listed([("a.csv", 3, "bad row", None)], 5, 5), QUARANTINED, "a.csv",
                          "bad", row=3), tmp_path)[0] == QUARANTINED
+    other_clip = Case("c", "r", "i", lambda tmp: Listed([("a.csv", 3, "bad row", None)], 5, 5), QUARANTINED, "a.csv",
+                      "bad", row=3, clip="clip-7")
+    assert classify(other_clip, tmp_path)[0] == SILENT  # the entry does not name the clip it refused
 
 
 def test_report_writes_the_table(tmp_path, monkeypatch):

@@ -288,8 +288,8 @@ def test_zero_weights_drop_points_and_negative_or_all_zero_weights_are_refused()
     weights = torch.tensor([1.0, 2.0, 1.0, 0.5, 1.0, 0.0], dtype=torch.float64)
     full = similarity_transform(source, target, weights=weights)
     dropped = similarity_transform(source[:5], target[:5], weights=weights[:5])
-    for a, b in ((full.rotation, dropped.rotation), (full.scale, dropped.scale), (full.translation, dropped.translation)):
-        assert torch.allclose(a, b, atol=1e-9)
+    for field in ("rotation", "scale", "translation"):
+        assert torch.allclose(getattr(full, field), getattr(dropped, field), atol=1e-9)
     assert torch.allclose(full.rotation, rotation, atol=1e-9) and float(full.scale) == pytest.approx(1.7)
     for bad in (torch.tensor([1.0, 1, 1, 1, 1, -0.1], dtype=torch.float64), torch.zeros(6, dtype=torch.float64)):
         with pytest.raises(ValueError, match="non-negative with a positive sum"):

@@ -241,5 +241,6 @@ def test_dataset_rejects_duplicate_clips(tmp_path, clips):
 
 @pytest.mark.parametrize("batch_size, chunk_batches", [(0, 50), (8, 0)])
 def test_sampler_refuses_an_empty_batch_or_chunk(batch_size, chunk_batches):
-    with pytest.raises(ValueError, match=rf"batch_size \({batch_size}\) and chunk_batches \({chunk_batches}\) must be >= 1"):
+    message = rf"batch_size \({batch_size}\) and chunk_batches \({chunk_batches}\) must be >= 1"
+    with pytest.raises(ValueError, match=message):
         LengthBucketSampler([5, 6, 7], batch_size=batch_size, chunk_batches=chunk_batches)
