@@ -10,6 +10,7 @@ passes, and has *no tests* when no selected test calls the function.
 
     python benchmarks/mutation.py --sample 1000    # a seeded random sample (what a 2-core machine does in ~1 h)
     python benchmarks/mutation.py                  # every mutant (~19,000: hours; use --max-children 16)
+    python benchmarks/mutation.py --sample 1000 --retest survived   # after adding tests: the survivors again
     python benchmarks/mutation.py --report-only    # rewrite the report from the verdicts in mutants/
 
 Writes ``benchmarks/results/mutation.md`` (per module: counts, the detection rate with its Wilson 95% interval
@@ -52,6 +53,9 @@ m.copy_src_dir(); m.copy_also_copy_files(); m.setup_source_paths(); m.store_line
 m.create_mutants({children})
 """
 SAMPLE_FILE = ROOT / "mutants" / "sample.json"
+# survivors a reader has looked at: mutant name -> why it may stay (an equivalent mutant, or only an error
+# message's wording); the report prints the reason beside the survivor, and counts the others as unexplained
+JUSTIFIED_FILE = ROOT / "benchmarks" / "mutation_justified.json"
 
 
 def wilson(hits: int, n: int, z: float = 1.96) -> tuple[float, float] | None:
@@ -151,6 +155,12 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
     notes = result.get("notes", [])
     if notes:
         lines += ["", *notes]
+    justified = json.loads(JUSTIFIED_FILE.read_text()) if JUSTIFIED_FILE.exists() else {}
+    survivors = [r for r in rows if r["status"] in SURVIVED]
+    explained = sum(r["name"] in justified for r in survivors)
+    lines += ["", f"Survivors: {len(survivors)}, of which {explained} are justified below (equivalent mutants, or "
+              f"only the wording of a message no test reads) and {len(survivors) - explained} are not yet: each of "
+              "those is a behaviour no test checks."]
     for title, statuses in (("Survivors", SURVIVED), ("Functions no selected test calls", UNTESTED),
                             ("Other outcomes (suspicious)", None)):
         chosen = [r for r in rows if (r["status"] in statuses if statuses else
@@ -167,7 +177,8 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
             for r in group:
                 changed = [line.strip() for line in diff_lines(r["name"], r["file"])]
                 text = " / ".join(changed)[:300].replace("`", "'")
-                lines.append(f"  - `{r['name'].rsplit('__mutmut_', 1)[-1]}` ({r['status']}): `{text}`")
+                why = f" — justified: {justified[r['name']]}" if r["name"] in justified else ""
+                lines.append(f"  - `{r['name'].rsplit('__mutmut_', 1)[-1]}` ({r['status']}): `{text}`{why}")
     out_md.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_md.with_suffix(".md.tmp")
     tmp.write_text("\n".join(lines) + "\n")
@@ -180,6 +191,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sample", type=int, default=0, help="test a seeded random sample of this many mutants "
                         "(0: all)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--retest", default="", help="also retest the sample's mutants of these statuses, comma "
+                        "separated (e.g. 'survived' after adding tests, 'timeout' after changing the timeout)")
     parser.add_argument("--report-only", action="store_true", help="write the report from the stored verdicts")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "mutation.json"))
     args = parser.parse_args(argv)
@@ -194,17 +207,27 @@ def main(argv: list[str] | None = None) -> dict:
         if args.sample:
             subprocess.run([sys.executable, "-c", GENERATE.format(children=args.max_children)], cwd=ROOT, check=True,
                            stdout=subprocess.DEVNULL)
-            population = sorted(r["name"] for r in verdicts())
-            names = sorted(random.Random(args.seed).sample(population, min(args.sample, len(population))))
-            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": names}))
+            stored = verdicts()
+            population = sorted(r["name"] for r in stored)
+            chosen = sorted(random.Random(args.seed).sample(population, min(args.sample, len(population))))
+            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen}))
+            # mutmut retests every mutant it is given by name: give it the sampled ones without a verdict (new, or
+            # changed since) and those of the statuses asked for
+            status = {r["name"]: r["status"] for r in stored}
+            again = {"not checked", *(s.strip() for s in args.retest.split(",") if s.strip())}
+            names = [n for n in chosen if status[n] in again]
+            if not names:
+                print("every sampled mutant has a verdict; writing the report", flush=True)
         else:
             SAMPLE_FILE.unlink(missing_ok=True)
-        print(f"mutmut run --max-children {args.max_children}"
-              f"{f' on {len(names)} sampled mutants' if names else ''} (progress in {log}) ...", flush=True)
         began = time.perf_counter()
-        with open(log, "w") as fh:
-            rc = subprocess.call([str(Path(sys.executable).with_name("mutmut")), "run", "--max-children",
-                                  str(args.max_children), *names], stdout=fh, stderr=subprocess.STDOUT)
+        rc = 0
+        if names or not args.sample:
+            print(f"mutmut run --max-children {args.max_children}"
+                  f"{f' on {len(names)} sampled mutants' if names else ''} (progress in {log}) ...", flush=True)
+            with open(log, "w") as fh:
+                rc = subprocess.call([str(Path(sys.executable).with_name("mutmut")), "run", "--max-children",
+                                      str(args.max_children), *names], stdout=fh, stderr=subprocess.STDOUT)
         seconds = round(time.perf_counter() - began, 1)
         if rc != 0:
             tail = log.read_text(errors="replace")[-3000:]
