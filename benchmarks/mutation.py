@@ -209,7 +209,9 @@ def main(argv: list[str] | None = None) -> dict:
                            stdout=subprocess.DEVNULL)
             stored = verdicts()
             population = sorted(r["name"] for r in stored)
-            chosen = sorted(random.Random(args.seed).sample(population, min(args.sample, len(population))))
+            order = list(population)
+            random.Random(args.seed).shuffle(order)  # a smaller sample is a prefix of a larger one: verdicts carry over
+            chosen = sorted(order[:args.sample])
             SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen}))
             # mutmut retests every mutant it is given by name: give it the sampled ones without a verdict (new, or
             # changed since) and those of the statuses asked for
