@@ -602,3 +602,36 @@ def test_registry(tmp_path):
     (clip,) = open_corpus("synthetic", tmp_path).clips()
     assert clip.get("media_kind") == "synthetic" and clip.get("kind") == "sentence"
     assert dataclasses.replace(clip, extra=()).id == "a"
+
+
+def test_resampling_a_letter_clip_keeps_its_duration_and_its_straight_line():
+    """A 30 fps letter clip spelled into a 25 fps word: 1.2 s stay 1.2 s (36 -> 30 frames), a point moving at
+    constant speed stays on its line, a masked neighbour takes the nearest frame; the same fps is a no-op."""
+    from m3t.corpora.fingerspelling import resample
+    from m3t.corpora.posefile import PoseData
+
+    t = np.arange(36, dtype=np.float32) / 30.0
+    points = np.zeros((36, 2, 3), np.float32)
+    points[:, 0, 0] = 100.0 * t  # x = 100 px per second
+    points[:, 1, 1] = np.arange(36)  # y = the frame index
+    confidence = np.ones((36, 2), np.float32)
+    confidence[7, 1] = 0.0  # point 1 masked at frame 7
+    clip = PoseData(points, confidence, 30.0, (("POSE", 2),), 640, 480)
+    out = resample(clip, 25.0)
+    assert out.points.shape == (30, 2, 3) and out.fps == 25.0
+    assert np.allclose(out.points[:, 0, 0], 100.0 * np.arange(30) / 25.0, atol=1e-4)
+    # output frame 6 sits at source position 7.2: next to the masked frame 7, so it takes the nearest frame (7)
+    # for point 1; point 0, seen on both sides, is interpolated
+    assert out.points[6, 1, 1] == 7.0 and out.confidence[6, 1] == 0.0
+    assert resample(clip, 30.0) is clip
+
+
+def test_fingerspelling_splits_are_pinned(fingerspelling):
+    """The split of a clip is a salted hash of its id: a changed salt or rule would move clips between train and
+    test and silently invalidate every model trained before (the counts and first test ids as of this test)."""
+    _, listing = fingerspelling
+    counts = collections.Counter((c.get("media_kind"), c.split) for c in listing.clips)
+    assert counts == {("pose", "train"): 487, ("pose", "dev"): 53, ("pose", "test"): 60,
+                      ("spelled", "train"): 306, ("spelled", "dev"): 41, ("spelled", "test"): 33}
+    assert sorted(c.id for c in listing.clips if c.split == "test")[:3] == [
+        "ase-fs-stsc0f68923fe12ab1862f2174adfb0182a", "ase-fs-stsd4266153e5392060923bfa7668849cb6", "ase-spelled-015"]
