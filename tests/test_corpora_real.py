@@ -635,3 +635,11 @@ def test_fingerspelling_splits_are_pinned(fingerspelling):
                       ("spelled", "train"): 306, ("spelled", "dev"): 41, ("spelled", "test"): 33}
     assert sorted(c.id for c in listing.clips if c.split == "test")[:3] == [
         "ase-fs-stsc0f68923fe12ab1862f2174adfb0182a", "ase-fs-stsd4266153e5392060923bfa7668849cb6", "ase-spelled-015"]
+
+
+@pytest.mark.parametrize("fps", [0.0, -25.0])
+def test_mead_refuses_a_frame_rate_that_is_not_positive(fps):
+    from m3t.corpora.mead import MeadConfig
+
+    with pytest.raises(ValueError, match=f"corpora.mead.fps must be > 0, got {fps}"):
+        MeadConfig(fps=fps)

@@ -105,6 +105,11 @@ def test_acceleration_loss_zero_for_constant_velocity():
     points = torch.cat([t * 0.01, t * 0.0, t * 0.02], dim=-1).expand(10, 4, 3)
     assert float(acceleration_loss(points)) == pytest.approx(0.0, abs=1e-8)
     assert float(acceleration_loss(points ** 2)) > 0
+    # three frames are enough for one acceleration: 1 cm up, then back -> (-2 cm)^2 on one axis
+    bump = torch.zeros(3, 1, 3)
+    bump[1, 0, 1] = 0.01
+    assert float(acceleration_loss(bump)) == pytest.approx(4.0)
+    assert float(acceleration_loss(bump[:2])) == 0.0
 
 
 def test_consolidated_summary_does_not_depend_on_completion_order(tmp_path):

@@ -227,3 +227,17 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
         for tok, fit in zip(shard.clips, fitted):
             assert all(len(t) == -(-fit.num_frames // 4) for t in tok.tokens.values())
     assert result["tokens"]["synthetic"]["rejected"] == 0
+
+
+def test_run_key_changes_with_the_training_settings_not_with_where_or_on_what_device():
+    """The key names the resumable checkpoint: a changed setting (learning rate, epochs, batch) must start a new
+    run, not resume a stale one; the cache folder and the device must not."""
+    from m3t.tokenizers.train import run_key
+
+    model = TINY_MODEL.vae_config("body", 12)
+    cfg = TokenizerTrainConfig()
+    key = run_key("body", model, cfg, "v1")
+    assert key == run_key("body", model, dataclasses.replace(cfg, cache_dir="elsewhere", device="cuda"), "v1")
+    for change in ({"lr": cfg.lr * 2}, {"epochs": cfg.epochs + 1}, {"batch_size": cfg.batch_size * 2}):
+        assert key != run_key("body", model, dataclasses.replace(cfg, **change), "v1"), change
+    assert key != run_key("body", model, cfg, "v2") != run_key("hand", model, cfg, "v1")
