@@ -129,7 +129,7 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
         "",
         f"mutmut {result['mutmut']} on commit `{result['commit']}`, {result['date']}; command: "
         "`python benchmarks/mutation.py` (configuration: `pyproject.toml` `[tool.mutmut]`).",
-        f"Run time: {result['run_seconds'] / 60:.0f} min with {result['max_children']} workers"
+        f"Run time of the last run: {result['run_seconds'] / 60:.0f} min with {result['max_children']} workers"
         if result.get("run_seconds") else "Run time: not measured (report rewritten from stored verdicts).",
         "",
         "*Detected* = killed + timeout + crashed. *Detection* is over every checked mutant; *of tested* leaves out "
@@ -248,11 +248,15 @@ def main(argv: list[str] | None = None) -> dict:
     result.update({"mutmut": mutmut.__version__, "commit": commit or "?", "date": dt.date.today().isoformat(),
                    "run_seconds": seconds, "max_children": args.max_children})
     out = Path(args.out)
+    if seconds is None and out.exists():  # --report-only: keep the time the last run took
+        previous = json.loads(out.read_text()).get("detail", {})
+        result.update({k: previous.get(k) for k in ("run_seconds", "max_children") if previous.get(k)})
     write_report(rows, result, out.with_suffix(".md"))
     from report import write_and_log
 
     flat = {"detection_pct": result["total"]["detection_pct"], "mutants": result["total"]["mutants"],
-            "survived": result["total"]["survived"], "no_tests": result["total"]["no_tests"], "run_seconds": seconds}
+            "survived": result["total"]["survived"], "no_tests": result["total"]["no_tests"],
+            "run_seconds": result["run_seconds"]}
     flat.update({f"{m}_detection_pct": c["detection_pct"] for m, c in result["modules"].items()})
     write_and_log({**flat, "detail": result}, out, "bench-mutation")
     return result
