@@ -21,6 +21,7 @@ from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.train import run_key, train_smlm, train_step
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary, VocabularyError, build_vocabulary
+from precision_steps import bf16_and_fp32_steps
 
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}
 SENTENCES = {
@@ -233,15 +234,10 @@ def test_bf16_autocast_step_on_cpu(vocab):
     twin = copy.deepcopy(model)
     batch = production_batch(make_examples(vocab)[:2], vocab)
     before = model.heads["body"].weight.detach().clone()
-    stats = {}
-    for precision, m in (("bf16", model), ("fp32", twin)):
-        optim = torch.optim.AdamW(m.parameters(), lr=1e-3)
-        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
-        dtypes = []
-        hook = m.heads["body"].register_forward_hook(lambda mod, args, out: dtypes.append(out.dtype))
-        stats[precision] = train_step(m, batch, optim, sched, precision)
-        hook.remove()
+    steps = bf16_and_fp32_steps(model, twin, batch, train_step, lambda m: m.heads["body"], torch.optim.AdamW)
+    for precision, (_, dtypes) in steps.items():
         assert dtypes == [torch.bfloat16 if precision == "bf16" else torch.float32], precision
+    stats = {precision: s for precision, (s, _) in steps.items()}
     assert math.isfinite(stats["bf16"]["production_loss"])
     assert stats["bf16"]["production_loss"] != stats["fp32"]["production_loss"]
     assert stats["bf16"]["production_loss"] == pytest.approx(stats["fp32"]["production_loss"], rel=0.05)

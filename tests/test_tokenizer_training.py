@@ -24,6 +24,7 @@ from m3t.tokenizers.pipeline import codebook_report
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
+from precision_steps import bf16_and_fp32_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 SPLITS = {"train": 4, "dev": 1, "test": 1}
@@ -96,15 +97,10 @@ def test_bf16_autocast_step_on_cpu():
     twin = copy.deepcopy(model)
     batch = (torch.randn(2, 16, 10), torch.ones(2, 16, dtype=torch.bool))
     before = model.encoder[0].weight.detach().clone()
-    stats = {}
-    for precision, m in (("bf16", model), ("fp32", twin)):
-        optim = torch.optim.Adam(m.parameters(), lr=1e-3)
-        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: 1.0)
-        dtypes = []
-        hook = m.encoder[0].register_forward_hook(lambda mod, args, out: dtypes.append(out.dtype))
-        stats[precision] = train_step(m, batch, optim, sched, precision)
-        hook.remove()
+    steps = bf16_and_fp32_steps(model, twin, batch, train_step, lambda m: m.encoder[0])
+    for precision, (_, dtypes) in steps.items():
         assert dtypes == [torch.bfloat16 if precision == "bf16" else torch.float32], precision
+    stats = {precision: s for precision, (s, _) in steps.items()}
     assert math.isfinite(stats["bf16"]["loss"])
     assert stats["bf16"]["loss"] != stats["fp32"]["loss"]
     assert stats["bf16"]["loss"] == pytest.approx(stats["fp32"]["loss"], rel=0.05)
