@@ -167,10 +167,13 @@ def files_under(folders: tuple[Path, ...]) -> dict[str, Path]:
     return {str(p.relative_to(f.parent)): p for f in folders if f.exists() for p in sorted(f.rglob("*")) if p.is_file()}
 
 
+def is_leftover(path: Path) -> bool:
+    """A temporary, partial or lock file: a hidden name (``atomic_path`` makes ``.name.*``), ``*.tmp``, ``*.lock``."""
+    return path.name.startswith(".") or path.suffix in (".tmp", ".lock")
+
+
 def leftovers(folders: tuple[Path, ...]) -> list[str]:
-    """Temporary, partial and lock files: hidden names (``atomic_path`` and the shard writer make ``.name.*``)
-    and ``*.tmp`` / ``*.lock``."""
-    return [k for k, p in files_under(folders).items() if p.name.startswith(".") or p.suffix in (".tmp", ".lock")]
+    return [k for k, p in files_under(folders).items() if is_leftover(p)]
 
 
 def same_file(a: Path, b: Path) -> tuple[bool, str]:
@@ -242,7 +245,7 @@ def kill_trials(job: Job, kills: int, rng: random.Random, logs: Path, scratch: P
         ran, finished, alive = kill_after(job.stage, job.params, log, at)
         before = parts(job.state[0]) if job.stage == "fit_corpus" else {}
         # what the rerun can resume from: finished parts, or the trainer's resumable checkpoint
-        saved = [k for k in files_under((job.state[0],)) if k not in leftovers((job.state[0],))]
+        saved = [k for k, p in files_under((job.state[0],)).items() if not is_leftover(p)]
         rerun = run_to_end(job.stage, job.params, log)
         problems = compare(reference, job.outputs)
         problems += [f"left behind: {k}" for k in leftovers(job.state)]
