@@ -195,7 +195,14 @@ def _eyelid_dirs(flame: dict, path: Path | None, eyes: np.ndarray) -> np.ndarray
 
 
 def teeth_geometry(inner_lips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two horseshoe arches behind the inner-lip points (8, 3): vertices (520, 3) (upper first), faces."""
+    """Two horseshoe arches behind the inner-lip points (8, 3): vertices (520, 3) (upper first), faces (1000, 3)
+    int64 wound counter-clockwise seen from outside (outward normals, as the body mesh).
+
+    Each arch is a tube (elliptic profile, 3 mm radial x 5 mm vertical) along a half-ellipse in the horizontal plane:
+    its front 6 mm behind the inner lips' centre, its ends ``half`` = 0.55 x the inner mouth width (iBUG 61-65,
+    at least 2 cm) to either side and 1.1 ``half`` further back. The arches lie 7 mm above (upper) and below
+    (lower) the centre, mirror images of each other about that horizontal (occlusal) plane.
+    """
     centre = inner_lips.mean(0)
     width = float(np.linalg.norm(inner_lips[0] - inner_lips[4]))  # iBUG 61 / 65: inner mouth corners
     half = max(width, 0.02) * 0.55
@@ -208,7 +215,9 @@ def teeth_geometry(inner_lips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ring_pts = []
         for a in angles:
             spine = centre + np.array([half * np.sin(a), sign * 0.007, -0.006 - depth * (1 - np.cos(a))])
-            radial = np.array([np.sin(a), 0.0, -np.cos(a)])  # outward from the arch centre, horizontal
+            # outward from the arch centre, horizontal: (0, 0, 1) at the front (+Z), (+-1, 0, 0) at the ends; it
+            # orients every profile ring the same way, so each face is wound counter-clockwise seen from outside
+            radial = np.array([np.sin(a), 0.0, np.cos(a)])
             for p in profile:
                 ring_pts.append(spine + 0.003 * np.cos(p) * radial + 0.005 * np.sin(p) * np.array([0, 1.0, 0]))
         verts.append(np.array(ring_pts))

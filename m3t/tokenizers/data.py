@@ -116,7 +116,8 @@ class WindowSampler:
     in at least one crop).
 
     Everything random is a function of ``(seed, epoch)``, so an epoch can be replayed exactly (resume).
-    With ``world_size > 1`` rank ``r`` gets every ``world_size``-th item of the epoch's permutation.
+    With ``world_size > 1`` rank ``r`` gets every ``world_size``-th item of the epoch's permutation, the
+    permutation wrapped round so that every rank gets ``ceil(N / world_size)`` items (DDP steps in lockstep).
     """
 
     def __init__(self, sequences: Sequence[np.ndarray], window: int, batch_size: int, per_sequence: int = 1,
@@ -158,9 +159,10 @@ class WindowSampler:
     def epoch(self, epoch: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """Yields (x (B, W, D), mask (B, W) bool) batches."""
         items, starts = self.crops(epoch)
-        mine = np.arange(self.rank, len(items), self.world_size)
-        if len(mine) < -(-len(items) // self.world_size):  # equal step counts on every rank (DDP)
-            mine = np.append(mine, mine[: -(-len(items) // self.world_size) - len(mine)])
+        # equal step counts on every rank (DDP): the permutation is wrapped round to a multiple of world_size, so
+        # a rank short of items (or with none: fewer items than ranks) takes the permutation's first ones again
+        per_rank = -(-len(items) // self.world_size)
+        mine = np.arange(self.rank, per_rank * self.world_size, self.world_size) % len(items)
         for b in range(0, len(mine), self.batch_size):
             xs, masks = [], []
             for k in mine[b: b + self.batch_size]:

@@ -1,0 +1,364 @@
+"""Behaviour details of the body models (m3t.body) that the coarser body, SMPL-FX and skeleton tests do not pin down.
+
+Written to pin behaviours that mutation testing found unchecked: the skeleton graph's validation messages, Anny's
+identity range, reading Python-2 model pickles, SMPL-FX's skinning, depth levels and device handling, and the
+SMPL-FX build steps (neck rings, teeth, 'mean' alignment, head / jaw pose correctives from FLAME, integer faces).
+The SMPL-FX build tests use the synthetic stand-in files of :mod:`smplfx_fixtures`.
+"""
+from __future__ import annotations
+
+import copy
+import pickle
+import struct
+
+import numpy as np
+import pytest
+import roma
+import torch
+
+from m3t.body.model_files import ModelFileError, load_model_arrays, load_pickle_safely
+from m3t.body.rotations import matrix_to_6d
+from m3t.body.skeleton import SkeletonGraph
+from m3t.body.smplfx import TO_PROTOCOL_FRAME, SMPLFXBody, _depth_levels
+from m3t.body.smplfx_build import (
+    FLAME_JAW,
+    FLAME_LEFT_EYE,
+    FLAME_NECK,
+    FLAME_RIGHT_EYE,
+    POSED_JOINTS,
+    SMPLX_JOINTS,
+    SMPLFXFiles,
+    build_smplfx,
+    neck_rings,
+    teeth_geometry,
+)
+
+
+# ------------------------------------------------------------------------------------------------ skeleton graph
+def test_skeleton_graph_rejects_malformed_joints_and_edges_naming_them():
+    with pytest.raises(ValueError, match=r"skeleton 'bad': joints \['neck'\] are not '<region>:<point>'"):
+        SkeletonGraph("bad", ("body:nose", "neck"), ())
+    with pytest.raises(ValueError, match=r"joints \['torso:neck'\].*'left_hand'"):
+        SkeletonGraph("bad", ("torso:neck", "left_hand:wrist"), ())
+    with pytest.raises(ValueError, match=r"skeleton 'dup': duplicate joints \['body:neck', 'body:nose'\]"):
+        SkeletonGraph("dup", ("body:nose", "body:neck", "body:nose", "face:4", "body:neck"), ())
+    with pytest.raises(ValueError, match=r"edges \[\(0, 3\)\] are not \(i, j\) with 0 <= i < j < 3"):
+        SkeletonGraph("far", ("body:neck", "body:nose", "face:4"), ((0, 1), (0, 3)))
+    with pytest.raises(ValueError, match="skeleton 'twice': duplicate edges"):
+        SkeletonGraph("twice", ("body:neck", "body:nose"), ((0, 1), (0, 1)))
+    # Joints may hold further colons after the region; numpy indices become plain int pairs.
+    graph = SkeletonGraph("ok", ("body:neck", "face:lip:inner"), (np.array([0, 1], dtype=np.int64),))
+    assert graph.edges == ((0, 1),) and type(graph.edges[0][0]) is int
+    assert graph.region_index()["face"].tolist() == [1] and graph.index("face:lip:inner") == 1
+    with pytest.raises(KeyError, match="skeleton 'ok' has no joint 'body:ear'"):
+        graph.index("body:ear")
+    with pytest.raises(ValueError, match=r"lacks \['edges'\]"):
+        SkeletonGraph.from_dict({"name": "x", "joints": ["body:neck"]})
+
+
+# ------------------------------------------------------------------------------------------------ Anny
+def test_anny_identity_is_bounded_to_the_phenotype_range(body):
+    """Anny's six phenotype parameters live in [0, 1] (the fit clamps identity to these bounds)."""
+    from m3t.body.anny_body import PHENOTYPES, AnnyBody
+
+    model = AnnyBody()  # the Anny model itself is shared with the session's ``body``: cheap
+    layout = model.layout
+    assert layout.identity_labels == PHENOTYPES
+    assert layout.identity_bounds == (0.0, 1.0)
+    low, high = layout.identity_bounds
+    ident = model.default_identity()
+    assert ident.shape == (6,) and bool(((ident > low) & (ident < high)).all())
+    assert layout["face"].bounds == (0.0, 1.0)
+
+
+# ------------------------------------------------------------------------------------------------ model files
+class _Python2Pickler(pickle._Pickler):
+    """Writes ``str`` and ``bytes`` as Python 2 wrote its ``str`` (SHORT_BINSTRING / BINSTRING opcodes of
+    Python's ``pickletools`` table), so the pickle reads like FLAME 2020's ``generic_model.pkl``: a protocol-2
+    Python-2 pickle whose keys and array buffers are 8-bit strings. FLAME's readers (soubhiksanyal/FLAME_PyTorch
+    ``flame.py``, Ribosome-rbx/PBNS ``preprocess.py`` for SMPL) load such files with
+    ``pickle.load(f, encoding='latin1')``."""
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+    def save_py2_str(self, obj):
+        data = obj.encode("latin1") if isinstance(obj, str) else bytes(obj)
+        if len(data) < 256:
+            self.write(pickle.SHORT_BINSTRING + bytes([len(data)]) + data)
+        else:
+            self.write(pickle.BINSTRING + struct.pack("<i", len(data)) + data)
+        self.memoize(obj)
+
+    dispatch[str] = save_py2_str
+    dispatch[bytes] = save_py2_str
+
+
+def test_python2_model_pickle_strings_are_read_as_latin1(tmp_path):
+    rng = np.random.default_rng(0)
+    arrays = {"v_template": rng.normal(size=(5, 3)), "f": np.array([[0, 1, 2], [2, 3, 4]], dtype=np.uint32)}
+    path = tmp_path / "generic_model.pkl"
+    with open(path, "wb") as fh:
+        _Python2Pickler(fh, protocol=2).dump({**arrays, "bs_style": "lbs", "author": "Ren\xe9e"})
+    assert pickle.SHORT_BINSTRING + b"\x0av_template" in path.read_bytes()  # a Python 2 str, not unicode
+    raw = load_pickle_safely(path)
+    assert raw["bs_style"] == "lbs" and raw["author"] == "Ren\xe9e"  # 8-bit strings decoded as latin-1
+    np.testing.assert_array_equal(raw["v_template"], arrays["v_template"])
+    loaded = load_model_arrays(path, required=("v_template", "f"))
+    assert sorted(loaded) == ["f", "v_template"]  # text entries are not arrays
+    assert loaded["f"].dtype == np.uint32
+    np.testing.assert_array_equal(loaded["f"], arrays["f"])
+    with pytest.raises(ModelFileError, match=r"generic_model\.pkl lacks keys \['weights'\]"):
+        load_model_arrays(path, required=("v_template", "weights"))
+
+
+def test_model_file_reader_keeps_arrays_and_numbers_and_names_what_it_cannot_read(tmp_path):
+    from scipy import sparse
+
+    dense = np.array([[0.0, 0.5, 0.0], [0.25, 0.0, 0.75]])
+    path = tmp_path / "model.pkl"
+    with open(path, "wb") as fh:
+        pickle.dump({"J_regressor": sparse.csr_matrix(dense), "nested": {"J": sparse.csc_matrix(dense)}, "scale": 2.5,
+                     "ids": [1, 2, 3], "flag": True, "ragged": [[1], [2, 3]], "name": "x"}, fh, protocol=2)
+    loaded = load_model_arrays(path)
+    assert sorted(loaded) == ["J_regressor", "ids", "scale"]  # bools, ragged lists, text and dicts are no arrays
+    np.testing.assert_array_equal(loaded["J_regressor"], dense)  # sparse -> dense
+    assert loaded["scale"] == 2.5 and loaded["ids"].tolist() == [1, 2, 3]
+    np.testing.assert_array_equal(load_pickle_safely(path)["nested"]["J"], dense)  # records inside dicts too
+    coo = tmp_path / "coo.pkl"
+    coo.write_bytes(pickle.dumps({"J_regressor": sparse.coo_matrix(dense)}, protocol=2))
+    unsupported = r"coo\.pkl: key '<root>\.J_regressor' is a sparse matrix in an unsupported layout \('coo'\)"
+    with pytest.raises(ModelFileError, match=unsupported):
+        load_model_arrays(coo)
+    listed = tmp_path / "list.pkl"
+    listed.write_bytes(pickle.dumps([np.zeros(3)], protocol=2))
+    with pytest.raises(ModelFileError, match=r"list\.pkl: expected a dict of arrays, found list"):
+        load_model_arrays(listed)
+    truncated = tmp_path / "truncated.pkl"
+    truncated.write_bytes(path.read_bytes()[:40])
+    with pytest.raises(ModelFileError, match=r"truncated\.pkl: pickle data was truncated; the file was not loaded"):
+        load_model_arrays(truncated)
+    (tmp_path / "empty.pkl").write_bytes(b"")
+    with pytest.raises(ModelFileError, match=r"empty\.pkl: not a readable model pickle \(EOFError"):
+        load_model_arrays(tmp_path / "empty.pkl")
+    np.save(tmp_path / "ids.npy", np.arange(4))
+    assert load_model_arrays(tmp_path / "ids.npy")["array"].tolist() == [0, 1, 2, 3]
+    np.savez(tmp_path / "mixed.npz", v=np.ones(2), names=np.array([{"a": 1}], dtype=object))
+    assert sorted(load_model_arrays(tmp_path / "mixed.npz")) == ["v"]  # object arrays are never unpickled
+    with pytest.raises(ModelFileError, match=r"model\.obj: unsupported model file type '\.obj'"):
+        (tmp_path / "model.obj").write_text("v 0 0 0\n")
+        load_model_arrays(tmp_path / "model.obj")
+    with pytest.raises(ModelFileError, match=r"model file .*absent\.npz does not exist"):
+        load_model_arrays(tmp_path / "absent.npz")
+
+
+# ------------------------------------------------------------------------------------------------ SMPL-FX model
+def test_depth_levels_group_joints_by_their_depth_below_the_root(fx):
+    levels = _depth_levels(np.array([-1, 0, 0, 1, 3, 2, 0]))
+    assert [lv.tolist() for lv in levels] == [[1, 2, 6], [3, 5], [4]]
+    assert all(lv.dtype == torch.int64 for lv in levels)
+    assert [lv.tolist() for lv in _depth_levels(np.array([-1, 0]))] == [[1]]
+    # SMPL-FX's tree: every non-root joint in exactly one level, right after its parent's level.
+    parents = np.asarray(fx.data.parents)
+    levels = _depth_levels(parents)
+    seen = np.concatenate([lv.numpy() for lv in levels])
+    assert sorted(seen.tolist()) == [j for j in range(len(parents)) if parents[j] >= 0]
+    level_of = {int(j): d + 1 for d, lv in enumerate(levels) for j in lv}
+    level_of[int(np.flatnonzero(parents < 0)[0])] = 0
+    assert all(level_of[j] == level_of[int(p)] + 1 for j, p in enumerate(parents) if p >= 0)
+
+
+def test_rest_parameters_and_forward_follow_the_models_device(fx):
+    """Parameters are made on the model's device (checked on PyTorch's 'meta' device, which needs no GPU)."""
+    meta = copy.copy(fx)  # a shallow copy with its own buffer table: the shared model stays on the CPU
+    meta._buffers = {k: v.to("meta") for k, v in fx._buffers.items()}
+    rest = meta.rest_params(2)
+    assert {k: v.device.type for k, v in rest.items()} == dict.fromkeys(fx.layout.names, "meta")
+    assert {k: tuple(v.shape) for k, v in rest.items()} == {k: (2, d) for k, d in fx.layout.dims.items()}
+    assert meta.default_identity().device.type == "meta"
+    out = meta.forward(rest, meta.default_identity())
+    assert out.vertices.device.type == "meta" and out.vertices.shape == (2, fx.template.shape[0], 3)
+    assert fx.template.device.type == "cpu"
+    cpu = fx.rest_params(2)
+    assert cpu["face"].device.type == "cpu" and torch.count_nonzero(cpu["face"][:, :102]) == 0
+
+
+def test_skinning_applies_each_joints_rigid_motion(fx):
+    """Linear blend skinning: a point moves with the blend of its joints' rigid motions x -> R (x - c) + p
+    (rotation R about the joint's rest position c, which lands at p); a common motion moves every point alike."""
+    g = torch.Generator().manual_seed(0)
+    n_joints, n_points = 4, 6
+    points = torch.randn(2, n_points, 3, generator=g)
+    rest_joints = torch.randn(1, n_joints, 3, generator=g)
+    weights = torch.rand(n_points, n_joints, generator=g)
+    weights = weights / weights.sum(1, keepdim=True)
+    # A pure translation of the whole skeleton moves every point by exactly that translation.
+    shift = torch.tensor([0.3, -0.2, 0.5])
+    eye = torch.eye(3).expand(2, n_joints, 3, 3)
+    moved = SMPLFXBody._skin(fx, points, weights, eye, rest_joints.expand(2, -1, -1) + shift, rest_joints)
+    torch.testing.assert_close(moved, points + shift)
+    # A common rigid motion (R, t): every point goes to R x + t, whatever its weights.
+    rot = roma.rotvec_to_rotmat(torch.tensor([[0.2, -0.4, 0.7], [1.0, 0.1, -0.3]]))  # (2, 3, 3) one per frame
+    pos = (rot[:, None] @ rest_joints[..., None])[..., 0] + shift  # (2, J, 3)
+    moved = SMPLFXBody._skin(fx, points, weights, rot[:, None].expand(2, n_joints, 3, 3), pos, rest_joints)
+    torch.testing.assert_close(moved, (rot[:, None] @ points[..., None])[..., 0] + shift)
+    # One-hot weights: the point follows its joint's own motion.
+    glob = roma.rotvec_to_rotmat(torch.randn(2, n_joints, 3, generator=g))
+    pos = torch.randn(2, n_joints, 3, generator=g)
+    one_hot = torch.nn.functional.one_hot(torch.arange(n_points) % n_joints, n_joints).float()
+    moved = SMPLFXBody._skin(fx, points, one_hot, glob, pos, rest_joints)
+    j = torch.arange(n_points) % n_joints
+    expected = (glob[:, j] @ (points - rest_joints[:, j])[..., None])[..., 0] + pos[:, j]
+    torch.testing.assert_close(moved, expected)
+
+
+def test_upper_teeth_follow_the_head_rigidly_when_the_neck_turns(fx):
+    """Upper teeth are skinned to the head alone: a neck rotation R carries them about the neck like the head,
+    so their offsets from the head joint turn by R (in the protocol frame)."""
+    params = fx.rest_params(1)
+    rot = roma.rotvec_to_rotmat(torch.tensor([0.35, -0.5, 0.2]))
+    body = params["body"].reshape(1, -1, 6).clone()
+    body[0, fx.layout["body"].labels.index("neck")] = matrix_to_6d(rot)
+    turned = dict(params, body=body.reshape(1, -1))
+    ident = fx.default_identity()
+    head = fx.joint_names.index("head")
+    V = fx.data.num_smplx_vertices
+    upper = slice(V, V + (fx.template.shape[0] - V) // 2)
+    rest, posed = fx.forward(params, ident), fx.forward(turned, ident)
+    in_frame = TO_PROTOCOL_FRAME @ rot @ TO_PROTOCOL_FRAME.T
+    offsets = rest.vertices[0, upper] - rest.joints[0, head]
+    torch.testing.assert_close(posed.vertices[0, upper] - posed.joints[0, head], offsets @ in_frame.T,
+                               atol=1e-5, rtol=0)
+    # ... and the head joint itself swings about the neck joint by R.
+    neck = fx.joint_names.index("neck")
+    torch.testing.assert_close(posed.joints[0, head] - posed.joints[0, neck],
+                               (rest.joints[0, head] - rest.joints[0, neck]) @ in_frame.T, atol=1e-6, rtol=0)
+    torch.testing.assert_close(posed.joints[0, neck], rest.joints[0, neck], atol=1e-6, rtol=0)
+
+
+# ------------------------------------------------------------------------------------------------ SMPL-FX build
+def _tube(rows: int, around: int, up: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """An open cylinder: ``rows`` rings of ``around`` vertices at heights up * 0.01 * row; both ends open."""
+    angle = 2 * np.pi * np.arange(around) / around
+    verts = np.array([(np.cos(a), up * 0.01 * r, np.sin(a)) for r in range(rows) for a in angle])
+    faces = []
+    for r in range(rows - 1):
+        for k in range(around):
+            a, b = r * around + k, r * around + (k + 1) % around
+            faces += [(a, b, a + around), (b, b + around, a + around)]
+    return verts, np.array(faces, dtype=np.int64)
+
+
+def test_neck_rings_grow_from_the_lowest_open_boundary():
+    verts, faces = _tube(rows=6, around=8)
+    rings = neck_rings(verts, faces, 3)
+    assert [r.tolist() for r in rings] == [list(range(r * 8, r * 8 + 8)) for r in range(3)]  # rows 0, 1, 2
+    # Upside down, the neck (the boundary with the lowest mean height) is the other end.
+    flipped = neck_rings(verts * [1.0, -1.0, 1.0], faces, 2)
+    assert [r.tolist() for r in flipped] == [list(range(40, 48)), list(range(32, 40))]
+    assert [r.size for r in neck_rings(verts, faces, 8)] == [8] * 6 + [0, 0]  # more rings than the mesh has rows
+    tetrahedron = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]])
+    with pytest.raises(ModelFileError, match="no open boundary"):
+        neck_rings(np.eye(4, 3), tetrahedron, 3)
+
+
+def _inner_lips() -> np.ndarray:
+    """iBUG 61-68 (inner lip contour from the right mouth corner over the upper lip) in SMPL-X's frame (Y up,
+    facing +Z), 4 cm wide."""
+    return np.array([[-0.02, 1.50, 0.10], [-0.01, 1.503, 0.102], [0.0, 1.503, 0.103], [0.01, 1.503, 0.102],
+                     [0.02, 1.50, 0.10], [0.01, 1.497, 0.102], [0.0, 1.497, 0.103], [-0.01, 1.497, 0.102]])
+
+
+def test_teeth_arches_sit_behind_the_lips_mirrored_about_the_occlusal_plane():
+    lips = _inner_lips()
+    centre = lips.mean(0)
+    verts, faces = teeth_geometry(lips)
+    assert verts.shape == (520, 3) and faces.shape == (1000, 3) and faces.dtype == np.int64
+    upper, lower = verts[:260], verts[260:]
+    assert (upper[:, 1] > centre[1]).all() and (lower[:, 1] < centre[1]).all()
+    np.testing.assert_allclose(upper[:, 1].mean() - centre[1], 0.007, atol=1e-9)
+    # Mirror images about the horizontal plane through the lips' centre (profile point j <-> -j of each ring).
+    mirrored = upper.reshape(26, 10, 3)[:, (10 - np.arange(10)) % 10] * [1.0, -1.0, 1.0] + [0.0, 2 * centre[1], 0.0]
+    np.testing.assert_allclose(lower, mirrored.reshape(-1, 3), atol=1e-12)
+    # A horseshoe opening backwards: the front 6 mm behind the lips (tube radius 3 mm), the ends 0.55 x the mouth
+    # width to either side and 1.1 x that further back.
+    half = 0.55 * 0.04
+    spine = upper.reshape(26, 10, 3).mean(1)
+    np.testing.assert_allclose(spine[[0, 25], 0] - centre[0], [-half, half], atol=1e-9)
+    np.testing.assert_allclose(spine[[0, 25], 2], centre[2] - 0.006 - 1.1 * half, atol=1e-9)
+    assert verts[:, 2].max() == pytest.approx(centre[2] - 0.006 + 0.003, abs=1e-4)
+    assert np.argmax(spine[:, 2]) in (12, 13) and (np.diff(spine[:13, 2]) > 0).all()
+    assert (faces[:500] < 260).all() and (faces[500:] >= 260).all() and faces.max() == 519  # each arch's own
+    # A narrow mouth still gets arches 2 cm wide.
+    narrow = lips * [0.1, 1.0, 1.0]
+    verts, _ = teeth_geometry(narrow)
+    np.testing.assert_allclose(verts.reshape(2, 26, 10, 3).mean(2)[0, [0, 25], 0], [-0.011, 0.011], atol=1e-9)
+
+
+def test_teeth_faces_are_wound_counter_clockwise_seen_from_outside():
+    """Outward normals on every tooth face, like the body mesh's (the shading and exported meshes rely on a
+    consistent winding; it used to flip halfway along each arch)."""
+    verts, faces = teeth_geometry(_inner_lips())
+    spines = verts.reshape(2, 26, 10, 3).mean(2)  # each ring's centre on the arch's centre line
+    arch, ring = faces[:, 0] // 260, (faces[:, 0] % 260) // 10
+    assert (faces // 260 == arch[:, None]).all() and (((faces % 260) // 10 - ring[:, None]) <= 1).all()
+    normal = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    outward = verts[faces].mean(1) - 0.5 * (spines[arch, ring] + spines[arch, ring + 1])
+    assert (np.einsum("fc,fc->f", normal, outward) > 0).all()
+
+
+@pytest.fixture(scope="module")
+def fx_files(tmp_path_factory):
+    from smplfx_fixtures import ensure_fixture_files
+
+    return ensure_fixture_files(tmp_path_factory)
+
+
+def test_mean_alignment_moves_flame_by_the_mean_displacement(fx_files):
+    """``alignment='mean'``: the FLAME head is moved by its mean displacement onto the corresponding SMPL-X
+    vertices (instead of the eyes'); the built mesh has int64 faces, the teeth's after SMPL-X's."""
+    files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence, fx_files.eyelids)
+    data = build_smplfx(files, alignment="mean")
+    sx, fl = load_model_arrays(fx_files.smplx), load_model_arrays(fx_files.flame_npz)
+    corr = data.head_vertices
+    offset = (sx["v_template"][corr] - fl["v_template"]).mean(0)
+    eyes_sx = (sx["J_regressor"] @ sx["v_template"])[[23, 24]].mean(0)
+    eyes = eyes_sx - (fl["J_regressor"] @ fl["v_template"])[[FLAME_LEFT_EYE, FLAME_RIGHT_EYE]].mean(0)
+    assert np.linalg.norm(offset - eyes) > 1e-3  # the two alignments differ on these files
+    ratio = data.smplx_ratio[corr][:, None].astype(np.float64)
+    expected = ratio * sx["v_template"][corr] + (1 - ratio) * (fl["v_template"] + offset)
+    np.testing.assert_allclose(data.template[corr], expected, atol=2e-6)
+    inner = ratio[:, 0] == 0
+    assert inner.sum() > 0.5 * len(corr)
+    np.testing.assert_allclose((data.template[corr][inner] - fl["v_template"][inner]).astype(np.float64),
+                               np.broadcast_to(offset, (int(inner.sum()), 3)), atol=2e-6)
+    # Faces: SMPL-X's (uint32 in the file) as int64, then the teeth's, indexing the appended vertices.
+    V = data.num_smplx_vertices
+    n_body = len(sx["f"])
+    assert data.faces.dtype == np.int64
+    np.testing.assert_array_equal(data.faces[:n_body], sx["f"].astype(np.int64))
+    assert data.faces[n_body:].min() >= V and data.faces.max() == data.template.shape[0] - 1
+    with pytest.raises(ValueError, match="alignment 'nose' unknown; use 'eyes' or 'mean'"):
+        build_smplfx(files, alignment="nose")
+
+
+def test_head_and_jaw_pose_correctives_come_from_flame(fx_files):
+    """On the head, the head joint's pose correctives are FLAME's neck block and the jaw's FLAME's jaw block,
+    blended with the neck ratio; the other posed joints keep only SMPL-X's (zero on the FLAME-only head)."""
+    files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence, fx_files.eyelids)
+    data = build_smplfx(files, n_rings=3)
+    sx, fl = load_model_arrays(fx_files.smplx), load_model_arrays(fx_files.flame_npz)
+    corr = data.head_vertices
+    ratio = data.smplx_ratio[corr].astype(np.float64)
+    assert sorted(np.unique(ratio).round(6).tolist()) == [0.0, 0.1, 0.5, 0.9]
+    smplx_names = list(POSED_JOINTS)
+    for name, flame_joint in (("head", FLAME_NECK), ("jaw", FLAME_JAW), ("neck", None), ("left_wrist", None)):
+        k = smplx_names.index(name)
+        block = data.pose_dirs[9 * k: 9 * (k + 1)][:, corr].astype(np.float64)  # (9, Vf, 3)
+        j = SMPLX_JOINTS.index(name)
+        expected = np.moveaxis(sx["posedirs"][corr][:, :, 9 * (j - 1): 9 * j], -1, 0) * ratio[None, :, None]
+        if flame_joint is not None:
+            flame_block = np.moveaxis(fl["posedirs"][:, :, 9 * (flame_joint - 1): 9 * flame_joint], -1, 0)
+            assert np.abs(flame_block[:, ratio == 0]).max() > 1e-5
+            expected = expected + flame_block * (1 - ratio)[None, :, None]
+        np.testing.assert_allclose(block, expected, atol=1e-7, err_msg=name)
+    assert np.all(data.pose_dirs[:, data.num_smplx_vertices:] == 0)  # teeth: rigid, no correctives
