@@ -11,6 +11,7 @@ passes, and has *no tests* when no selected test calls the function.
     python benchmarks/mutation.py --sample 1000    # a seeded random sample (what a 2-core machine does in ~1 h)
     python benchmarks/mutation.py                  # every mutant (~19,000: hours; use --max-children 16)
     python benchmarks/mutation.py --sample 1000 --retest survived   # after adding tests: the survivors again
+    python benchmarks/mutation.py --sample 1000 --seen 500   # also rate the 500 mutants no test writer has seen
     python benchmarks/mutation.py --report-only    # rewrite the report from the verdicts in mutants/
 
 Writes ``benchmarks/results/mutation.md`` (per module: counts, the detection rate with its Wilson 95% interval
@@ -90,8 +91,9 @@ def verdicts() -> list[dict]:
     return rows
 
 
-def summary(rows: list[dict]) -> dict:
-    """Counts per module and overall; ``detection_pct`` = (killed + timeout) / every checked mutant."""
+def summary(rows: list[dict], seen: set[str] = frozenset()) -> dict:
+    """Counts per module and overall; ``detection_pct`` = (killed + timeout) / every checked mutant. With ``seen``
+    (the mutants whose survivors tests were written against), also ``unseen``: the counts over the rest."""
     def counts(subset: list[dict]) -> dict:
         c = collections.Counter(r["status"] for r in subset)
         checked = sum(v for k, v in c.items() if k not in ("not checked", "skipped"))
@@ -107,7 +109,10 @@ def summary(rows: list[dict]) -> dict:
                 if checked - c["no tests"] else None}
 
     modules = sorted({r["module"] for r in rows})
-    return {"modules": {m: counts([r for r in rows if r["module"] == m]) for m in modules}, "total": counts(rows)}
+    result = {"modules": {m: counts([r for r in rows if r["module"] == m]) for m in modules}, "total": counts(rows)}
+    if seen:
+        result.update(seen=len(seen), unseen=counts([r for r in rows if r["name"] not in seen]))
+    return result
 
 
 def diff_lines(name: str, file: str) -> list[str]:
@@ -143,7 +148,9 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
         "| of tested % |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for name, c in [*result["modules"].items(), ("**all**", total)]:
+    unseen = [(f"*unseen* (the {result['unseen']['mutants']} drawn after the tests for the first "
+               f"{result['seen']} were written)", result["unseen"])] if result.get("unseen") else []
+    for name, c in [*result["modules"].items(), ("**all**", total), *unseen]:
         interval = c["detection_ci95"] if result.get("sample") else None
         ci = f" ({interval[0]}-{interval[1]})" if interval else ""
         lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['crashed']} | {c['survived']} "
@@ -193,6 +200,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--retest", default="", help="also retest the sample's mutants of these statuses, comma "
                         "separated (e.g. 'survived' after adding tests, 'timeout' after changing the timeout)")
+    parser.add_argument("--seen", type=int, default=0, help="the first N mutants of the seeded order are those "
+                        "whose survivors tests were written against: the report also rates the rest of the sample "
+                        "on its own (an estimate no test was tuned to)")
     parser.add_argument("--report-only", action="store_true", help="write the report from the stored verdicts")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "mutation.json"))
     args = parser.parse_args(argv)
@@ -212,7 +222,9 @@ def main(argv: list[str] | None = None) -> dict:
             order = list(population)
             random.Random(args.seed).shuffle(order)  # a smaller sample is a prefix of a larger one: verdicts carry over
             chosen = sorted(order[:args.sample])
-            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen}))
+            seen = sorted(order[:min(args.seen, args.sample)])
+            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen,
+                                               "seen": seen}))
             # mutmut retests every mutant it is given by name: give it the sampled ones without a verdict (new, or
             # changed since) and those of the statuses asked for
             status = {r["name"]: r["status"] for r in stored}
@@ -240,7 +252,7 @@ def main(argv: list[str] | None = None) -> dict:
     if sample:
         chosen = set(sample["names"])
         rows = [r for r in rows if r["name"] in chosen]
-    result = summary(rows)
+    result = summary(rows, seen=set(sample.get("seen", [])) if sample else set())
     result.update({"population": sample["population"] if sample else population,
                    "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None})
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -258,6 +270,8 @@ def main(argv: list[str] | None = None) -> dict:
             "survived": result["total"]["survived"], "no_tests": result["total"]["no_tests"],
             "run_seconds": result["run_seconds"]}
     flat.update({f"{m}_detection_pct": c["detection_pct"] for m, c in result["modules"].items()})
+    if result.get("unseen"):
+        flat["unseen_detection_pct"] = result["unseen"]["detection_pct"]
     write_and_log({**flat, "detail": result}, out, "bench-mutation")
     return result
 
