@@ -40,10 +40,10 @@ def test_wilson_interval_brackets_the_rate_and_narrows_with_the_sample():
     assert mutation.wilson(10, 10)[1] == 100.0
 
 
-def test_the_unseen_part_of_a_sample_is_rated_on_its_own():
-    early = rows("fitting", killed=3, survived=1)  # the part whose survivors got tests
-    late = rows("corpora", killed=2, survived=2)
-    result = mutation.summary(early + late, seen={r["name"] for r in early})
-    assert result["seen"] == 4 and result["unseen"]["mutants"] == 4
-    assert result["unseen"]["detection_pct"] == 50.0 and result["total"]["detection_pct"] == 62.5
-    assert "unseen" not in mutation.summary(early + late)
+def test_mutants_targeted_by_new_tests_are_left_out_of_a_second_rate():
+    targeted = rows("fitting", killed=3, survived=1)  # one function: its survivor got a test
+    rest = rows("corpora", killed=2, survived=2)
+    result = mutation.summary(targeted + rest, targeted={"m3t.fitting.f__mutmut_survived0", "m3t.elsewhere__mutmut_1"})
+    assert result["targeted"] == 4 and result["untargeted"]["mutants"] == 4
+    assert result["untargeted"]["detection_pct"] == 50.0 and result["total"]["detection_pct"] == 62.5
+    assert "untargeted" not in mutation.summary(targeted + rest)
