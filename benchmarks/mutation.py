@@ -30,7 +30,7 @@ import datetime as dt
 import json
 import math
 import os
-import random
+import hashlib
 import subprocess
 import sys
 import time
@@ -72,6 +72,18 @@ def wilson(hits: int, n: int, z: float = 1.96) -> tuple[float, float] | None:
     p = hits / n
     centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
     return (round(100 * (centre - half) / (1 + z * z / n), 1), round(100 * (centre + half) / (1 + z * z / n), 1))
+
+
+def draw(population: list[str], n: int, seed: int) -> list[str]:
+    """The ``n`` mutants whose ``sha256(seed:name)`` rank lowest, sorted by name.
+
+    Each mutant's rank depends on its name alone, so the draw is stable: a smaller sample is a subset of a larger
+    one, and a code change that adds or removes k mutants changes at most k members of the sample (a shuffle of the
+    whole population would redraw all of it, and every stored verdict would be lost to the rate).
+    """
+    def rank(name: str) -> str:
+        return hashlib.sha256(f"{seed}:{name}".encode()).hexdigest()
+    return sorted(sorted(population, key=rank)[:n])
 
 
 def module_of(path: Path) -> str:
@@ -150,7 +162,8 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
         "the mutants of functions no selected test calls (listed below).",
         "",
         (f"**A seeded random sample** of {result['sample']} of the {result['population']} mutants (seed "
-         f"{result['seed']}): each rate carries its Wilson 95% interval." if result.get("sample") else
+         f"{result['seed']}: the mutants of lowest sha256(seed:name)); each rate carries its Wilson 95% interval."
+         if result.get("sample") else
          f"Every one of the {result['population']} mutants."),
         "",
         "| module | mutants | killed | timeout | crashed | survived | no tests | other | detection % (95% CI) "
@@ -225,11 +238,7 @@ def main(argv: list[str] | None = None) -> dict:
                            stdout=subprocess.DEVNULL)
             stored = verdicts()
             population = sorted(r["name"] for r in stored)
-            order = list(population)
-            # a smaller sample is a prefix of a larger one, so verdicts carry over; a code change that adds or
-            # removes mutants changes the population and so the whole draw
-            random.Random(args.seed).shuffle(order)
-            chosen = sorted(order[:args.sample])
+            chosen = draw(population, args.sample, args.seed)
             SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen}))
             # mutmut retests every mutant it is given by name: give it the sampled ones without a verdict (new, or
             # changed since) and those of the statuses asked for

@@ -2,8 +2,11 @@
 
 Written to pin behaviours that mutation testing found unchecked: the skeleton graph's validation messages, Anny's
 identity range, reading Python-2 model pickles, SMPL-FX's skinning, depth levels and device handling, and the
-SMPL-FX build steps (neck rings, teeth, 'mean' alignment, head / jaw pose correctives from FLAME, integer faces).
-The SMPL-FX build tests use the synthetic stand-in files of :mod:`smplfx_fixtures`.
+SMPL-FX build steps (neck rings, teeth, 'mean' alignment, head / jaw pose correctives from FLAME, integer faces,
+the checks naming a model file that lacks keys or joints, expressions from FLAME's directions 300-400), landmark
+correspondences (Anny's available sets, the neck joint, skeleton graphs, SMPL-FX's resolved table), the body cache
+key and protocol-0/1 pickles with sparse regressors. The SMPL-FX build tests use the synthetic stand-in files of
+:mod:`smplfx_fixtures`.
 """
 from __future__ import annotations
 
@@ -362,3 +365,226 @@ def test_head_and_jaw_pose_correctives_come_from_flame(fx_files):
             expected = expected + flame_block * (1 - ratio)[None, :, None]
         np.testing.assert_allclose(block, expected, atol=1e-7, err_msg=name)
     assert np.all(data.pose_dirs[:, data.num_smplx_vertices:] == 0)  # teeth: rigid, no correctives
+
+
+# ------------------------------------------------------------------------------------------------ correspondences
+def test_anny_names_its_landmark_sets_when_one_is_unknown(body):
+    from m3t.body.anny_body import AnnyBody
+
+    with pytest.raises(FileNotFoundError) as err:
+        AnnyBody.correspondence(body, "openpose_body25")
+    message = str(err.value)
+    assert "no landmark correspondence anny_openpose_body25.json for body model 'anny'" in message
+    assert message.endswith("available: ['mediapipe_holistic']")  # set names, as one passes them back
+
+
+def test_neck_joint_is_the_models_named_neck_else_the_first_neck_like_joint():
+    from types import SimpleNamespace
+
+    from m3t.body.metric_sets import _neck_index
+
+    # The model's own neck joint wins over an earlier neck-like name.
+    assert _neck_index(SimpleNamespace(name="anny", joint_names=("root", "neck02", "neck01", "head"))) == 2
+    assert _neck_index(SimpleNamespace(name="smplfx", joint_names=("pelvis", "neck_twist", "neck", "head"))) == 2
+    # Unknown models, or a known one lacking its neck: the first joint whose name starts with 'neck' (any case).
+    assert _neck_index(SimpleNamespace(name="custom", joint_names=("spine", "Neck_1", "neck_2"))) == 1
+    assert _neck_index(SimpleNamespace(name="anny", joint_names=("spine", "upper_neck", "NECK03"))) == 2
+    with pytest.raises(KeyError, match="body model 'custom' has no neck joint; add it to NECK_JOINT"):
+        _neck_index(SimpleNamespace(name="custom", joint_names=("spine", "head", "upper_neck")))
+
+
+def _holistic_body(names, kind, index, name="smplfx", joints=("pelvis", "neck", "head")):
+    """A stand-in body model whose MediaPipe-Holistic correspondence is the given table."""
+    from types import SimpleNamespace
+
+    from m3t.body.protocol import Correspondence
+
+    corr = Correspondence(tuple(names), np.array(kind, dtype=np.int64), np.array(index, dtype=np.int64))
+    sets = {"mediapipe_holistic": corr}
+    return SimpleNamespace(name=name, joint_names=joints, correspondence=lambda landmark_set: sets[landmark_set])
+
+
+def test_graph_correspondence_maps_body_joints_to_pose_landmarks_and_the_neck_to_the_neck_joint():
+    from m3t.body.skeleton import graph_correspondence
+
+    body = _holistic_body(
+        ["pose:nose", "pose:left_ear", "pose:mouth:left", "pose:left", "left_hand:wrist", "face:61"],
+        [0, 1, 0, 0, 0, -1], [10, 2, 20, 30, 40, 0])
+    graph = SkeletonGraph("g", ("body:neck", "body:nose", "body:mouth:left", "left_hand:wrist", "body:left_ear"),
+                          ((0, 1), (1, 2)))
+    corr = graph_correspondence(body, graph)
+    assert corr.names == graph.joints
+    assert corr.kind.tolist() == [1, 0, 0, 0, 1] and corr.index.tolist() == [1, 10, 20, 40, 2]
+    assert corr.kind.dtype == np.int64 and corr.index.dtype == np.int64  # indices, as every Correspondence
+    with pytest.raises(ValueError, match=r"skeleton 'chin' on body model 'smplfx': landmarks \['pose:chin'\] are "
+                                         r"not in the correspondence"):
+        graph_correspondence(body, SkeletonGraph("chin", ("body:neck", "body:chin"), ()))
+    with pytest.raises(ValueError, match=r"body model 'smplfx' has no point for joints \['face:61'\] of skeleton "
+                                         r"'lips'"):
+        graph_correspondence(body, SkeletonGraph("lips", ("body:nose", "face:61"), ()))
+
+
+def test_smplfx_correspondence_resolves_joints_smplx_vertices_and_ibug_landmarks():
+    from types import SimpleNamespace
+
+    from m3t.body.smplfx import resolve_correspondence
+
+    data = SimpleNamespace(num_smplx_vertices=100, landmark_vertices=np.arange(500, 551))  # iBUG 18..68
+    spec = {"landmarks": [
+        {"name": "neck", "joint": "neck"},
+        {"name": "wrist", "smplx_vertex": 42},
+        {"name": "lip", "smplx_vertex": 150, "ibug": 62},  # a head vertex SMPL-FX replaced: its iBUG landmark
+        {"name": "brow", "ibug": 18},
+        {"name": "ear", "smplx_vertex": 100},  # beyond SMPL-X's vertices, no landmark: none
+        {"name": "tongue"},
+    ]}
+    corr = resolve_correspondence(spec, ("pelvis", "spine", "neck"), data)
+    assert corr.names == ("neck", "wrist", "lip", "brow", "ear", "tongue")
+    assert corr.kind.tolist() == [1, 0, 0, 0, -1, -1]
+    assert corr.index.tolist() == [2, 42, 544, 500, 0, 0]
+    assert corr.valid.tolist() == [True, True, True, True, False, False]
+    empty = resolve_correspondence({"landmarks": []}, ("pelvis",), data)
+    assert empty.names == () and empty.kind.dtype == np.int64 and empty.index.dtype == np.int64
+
+
+# ------------------------------------------------------------------------------------------------ body cache key
+def test_body_cache_key_hashes_the_model_files_and_ignores_the_cache_folder(tmp_path):
+    import dataclasses
+    import hashlib
+
+    from m3t.body.config import BodyConfig
+    from m3t.body.factory import body_cache_key
+
+    assert body_cache_key(BodyConfig(model="anny")) == "anny"
+    assert body_cache_key(BodyConfig(model="anny", cache_dir="elsewhere")) == "anny"
+    smplx, flame = tmp_path / "SMPLX_NEUTRAL.npz", tmp_path / "generic_model.pkl"
+    smplx.write_bytes(b"smplx v1.1")
+    flame.write_bytes(b"flame 2020")
+    cfg = BodyConfig(model="smplfx", smplx_path=str(smplx), flame_path=str(flame),
+                     flame_correspondence_path=str(tmp_path / "absent.npy"))
+    key = body_cache_key(cfg)
+    assert key == {**dataclasses.asdict(cfg), "cache_dir": None,
+                   "files": {"smplx_path": hashlib.sha256(b"smplx v1.1").hexdigest(),
+                             "flame_path": hashlib.sha256(b"flame 2020").hexdigest(),
+                             "flame_correspondence_path": "missing"}}
+    # Anny's cache folder is no property of the SMPL-FX model: moving it keeps the cached fits.
+    assert body_cache_key(dataclasses.replace(cfg, cache_dir="/elsewhere/anny")) == key
+    assert body_cache_key(dataclasses.replace(cfg, flame_shape_dims=50)) != key
+    flame.write_bytes(b"flame 2023")
+    assert body_cache_key(cfg)["files"]["flame_path"] == hashlib.sha256(b"flame 2023").hexdigest()
+
+
+# ------------------------------------------------------------------------------------------------ older model pickles
+def test_protocol_0_and_1_pickles_with_sparse_regressors_keep_their_shape(tmp_path):
+    """Pickle protocols 0 and 1 rebuild objects through ``copy_reg._reconstructor`` (what Python 2 wrote for
+    them); a sparse regressor whose last rows / columns are empty keeps its stored shape (a vertex that no
+    joint uses is still a column)."""
+    from scipy import sparse
+
+    dense = np.array([[0.0, 0.5, 0.0, 0.0], [0.25, 0.0, 0.75, 0.0], [0.0, 0.0, 0.0, 0.0]])  # last row, column empty
+    model = {"J_regressor": sparse.csr_matrix(dense), "J_csc": sparse.csc_matrix(dense),
+             "v_template": np.arange(6.0).reshape(2, 3), "parts": {"head", "neck"}, "fixed": frozenset({"jaw"})}
+    for protocol in (0, 1):
+        for python2_names in (True, False):  # copy_reg / __builtin__ (as Python 2 wrote) or copyreg / builtins
+            path = tmp_path / f"model_p{protocol}_{python2_names}.pkl"
+            path.write_bytes(pickle.dumps(model, protocol=protocol, fix_imports=python2_names))
+            assert (b"copy_reg\n_reconstructor" if python2_names else b"copyreg\n_reconstructor") in path.read_bytes()
+            loaded = load_model_arrays(path, required=("J_regressor", "v_template"))
+            assert sorted(loaded) == ["J_csc", "J_regressor", "v_template"]
+            for key in ("J_regressor", "J_csc"):
+                assert loaded[key].shape == (3, 4), key
+                np.testing.assert_array_equal(loaded[key], dense)
+            np.testing.assert_array_equal(loaded["v_template"], np.arange(6.0).reshape(2, 3))
+            raw = load_pickle_safely(path)
+            assert raw["parts"] == {"head", "neck"} and raw["fixed"] == frozenset({"jaw"})
+    import os
+
+    evil = tmp_path / "evil.pkl"
+    evil.write_bytes(pickle.dumps({"v_template": os.system}, protocol=2))
+    with pytest.raises(ModelFileError, match=r"evil\.pkl: refused global (posix|nt)\.system: not an array or a known "
+                                             r"model-file type; the file was not loaded"):
+        load_model_arrays(evil)
+
+
+# ------------------------------------------------------------------------------------------------ SMPL-FX layout
+def test_smplfx_layout_defaults_to_the_papers_110_identity_coefficients():
+    """M3T Eq. 1: 10 SMPL-X betas + 100 FLAME shape coefficients by default; the layout needs no model files."""
+    from m3t.body.smplfx import smplfx_layout
+
+    layout = smplfx_layout()
+    assert layout.identity_dim == 110 and layout == smplfx_layout(100)
+    assert layout.identity_labels[:2] == ("smplx_beta_0", "smplx_beta_1")
+    assert layout.identity_labels[9:11] == ("smplx_beta_9", "flame_shape_000")
+    assert layout.identity_labels[-1] == "flame_shape_099"
+    assert layout.names == ("body", "left_hand", "right_hand", "face") and layout["face"].dim == 108
+    assert smplfx_layout(20).identity_dim == 30
+
+
+# ------------------------------------------------------------------------------------------------ SMPL-FX build checks
+def _small_model_file(path, **arrays):
+    """A model file holding every key SMPL-FX's build requires, tiny placeholders unless given."""
+    from m3t.body.smplfx_build import SMPLX_REQUIRED
+
+    np.savez(path, **{**{k: np.zeros((1, 1)) for k in SMPLX_REQUIRED}, **arrays})
+    return path
+
+
+def test_build_names_the_model_file_that_lacks_a_key_or_has_the_wrong_joints(fx_files, tmp_path):
+    corr = np.load(fx_files.correspondence)
+    files = SMPLFXFiles(tmp_path / "SMPLX_NEUTRAL.npz", fx_files.flame_npz, fx_files.correspondence)
+    vertices = np.zeros((int(corr.max()) + 1, 3))
+    np.savez(files.smplx, v_template=vertices, f=np.zeros((1, 3), np.int64), shapedirs=np.zeros((1, 1, 1)),
+             J_regressor=np.zeros((55, 1)), weights=np.zeros((1, 55)), kintree_table=np.zeros((2, 55)))
+    with pytest.raises(ModelFileError, match=r"SMPLX_NEUTRAL\.npz lacks keys \['posedirs'\]; found \[.*'weights'\]"):
+        build_smplfx(files)
+    joints = "expected SMPL-X with 55 joints and FLAME with 5 joints; check the model files"
+    _small_model_file(files.smplx, v_template=vertices, J_regressor=np.zeros((24, 1)))  # SMPL's 24 joints
+    with pytest.raises(ModelFileError, match=joints):
+        build_smplfx(files)
+    flame = _small_model_file(tmp_path / "flame.npz", v_template=np.zeros((len(corr), 3)), J_regressor=np.zeros((4, 1)))
+    _small_model_file(files.smplx, v_template=vertices, J_regressor=np.zeros((55, 1)))
+    with pytest.raises(ModelFileError, match=joints):
+        build_smplfx(SMPLFXFiles(files.smplx, flame, fx_files.correspondence))
+    np.savez(flame, **{k: v for k, v in load_model_arrays(flame).items() if k != "kintree_table"})
+    with pytest.raises(ModelFileError, match=r"flame\.npz lacks keys \['kintree_table'\]"):
+        build_smplfx(SMPLFXFiles(files.smplx, flame, fx_files.correspondence))
+    # FLAME needs 300 shape + 100 expression directions, and the identity at most its 300 shapes.
+    _small_model_file(flame, v_template=np.zeros((len(corr), 3)), J_regressor=np.zeros((5, 1)),
+                      shapedirs=np.zeros((1, 1, 300)))
+    with pytest.raises(ModelFileError, match=r"flame\.npz: FLAME 2020 has 300 shape \+ 100 expression directions; "
+                                             r"found 300 \(flame_shape_dims=100\)"):
+        build_smplfx(SMPLFXFiles(files.smplx, flame, fx_files.correspondence))
+    _small_model_file(flame, v_template=np.zeros((len(corr), 3)), J_regressor=np.zeros((5, 1)),
+                      shapedirs=np.zeros((1, 1, 400)))
+    with pytest.raises(ModelFileError, match=r"found 400 \(flame_shape_dims=301\)"):
+        build_smplfx(SMPLFXFiles(files.smplx, flame, fx_files.correspondence), flame_shape_dims=301)
+    # The correspondence: one SMPL-X vertex per FLAME vertex, each inside SMPL-X's mesh.
+    for name, ids in (("short.npy", corr[:-1]), ("negative.npy", np.concatenate([[-1], corr[1:]])),
+                      ("beyond.npy", np.concatenate([[len(vertices)], corr[1:]]))):
+        np.save(tmp_path / name, ids)
+        low, high = int(ids.min()), int(ids.max())
+        message = (rf"{name.replace('.', '[.]')}: expected {len(corr)} SMPL-X vertex indices in \[0, {len(vertices)}\) "
+                   rf"\(one per FLAME vertex\), found shape \({len(ids)},\) with range \[{low}, {high}\]")
+        with pytest.raises(ModelFileError, match=message):
+            build_smplfx(SMPLFXFiles(files.smplx, flame, tmp_path / name))
+
+
+def test_expressions_are_flames_directions_300_to_400_even_when_the_file_has_more(fx_files, tmp_path):
+    """FLAME 2020's shapedirs hold 300 shape then 100 expression directions; further ones are ignored, so the
+    face stream keeps 100 expressions + 2 eyelids."""
+    fl = load_model_arrays(fx_files.flame_npz)
+    extra = np.random.default_rng(0).normal(scale=1e-3, size=(*fl["shapedirs"].shape[:2], 10))
+    longer = tmp_path / "flame_410.npz"
+    np.savez(longer, **{**fl, "shapedirs": np.concatenate([fl["shapedirs"], extra], axis=-1)})
+    data = build_smplfx(SMPLFXFiles(fx_files.smplx, longer, fx_files.correspondence, fx_files.eyelids),
+                        flame_shape_dims=20)
+    V = data.num_smplx_vertices
+    assert data.face_dirs.shape == (102, data.template.shape[0], 3)
+    assert data.identity_dirs.shape == (30, data.template.shape[0], 3)
+    corr = data.head_vertices
+    flame_share = (1 - data.smplx_ratio[corr].astype(np.float64))[None, :, None]
+    expressions = np.moveaxis(fl["shapedirs"][:, :, 300:400], -1, 0) * flame_share
+    np.testing.assert_allclose(data.face_dirs[:100][:, corr], expressions, atol=1e-7)
+    shapes = np.moveaxis(fl["shapedirs"][:, :, :20], -1, 0) * flame_share
+    np.testing.assert_allclose(data.identity_dirs[10:][:, corr], shapes, atol=1e-7)
+    assert not data.face_dirs[:, V:].any()  # teeth: no expressions

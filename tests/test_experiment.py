@@ -1,8 +1,6 @@
 """MLflow through m3t.experiment: absolute URIs, a logged run comes back with its metrics and artifacts."""
 from __future__ import annotations
 
-from pathlib import Path
-
 from m3t.experiment import (EXPERIMENT_KIND, ExperimentConfig, absolute_uri, extra_tags, fetch_runs, metric_histories,
                             start_run)
 

@@ -2,7 +2,9 @@
 what the content keys of tracks, fits, batch fits and imports follow; how one signer's batch treats its imported,
 failing and fused clips; the quarantine record; which config sections and artifact folders the MLflow run of a
 corpus gets; the data-quality and import summaries; the solver's schedule, the default camera and the batch's
-error message; the executors built without starting a cluster. Written to pin behaviours that mutation testing
+error message; the executors built without starting a cluster; the run's scheduler (capacity, polling, dead
+workers, failing tasks) driven by in-process stand-in executors; the cache's integrity checks; fusion's messages,
+interpolation and initialisation record; the camera-only stage. Written to pin behaviours that mutation testing
 found unchecked.
 
 Corpora:
@@ -712,3 +714,837 @@ def test_a_dask_run_without_an_address_starts_and_closes_its_own_single_threaded
     with pytest.raises(ConnectionError, match=rf"no Dask scheduler answered at 'tcp://scheduler:8786' within "
                                               rf"{CONNECT_SECONDS:.0f} s \(refused\)"):
         connect_dask(FitCorpusConfig(executor="dask", dask_address="tcp://scheduler:8786"))
+
+
+# ------------------------------------------------------------------------------------------ jobs sent to workers
+def test_a_worker_process_fits_with_one_torch_thread():
+    from m3t.fitting.cluster import on_worker, one_thread
+
+    torch.set_num_threads(2)
+    one_thread()
+    assert torch.get_num_threads() == 1
+    one_thread()  # already one: stays one
+    assert torch.get_num_threads() == 1
+    torch.set_num_threads(3)
+    assert on_worker(lambda a, b=0: (a, b, torch.get_num_threads()), "clip", b=4) == ("clip", 4, 1)
+
+
+def test_a_job_sent_to_other_machines_names_its_paths_absolutely(tmp_path, monkeypatch):
+    """The cache dir, the corpus root and the body model's build cache are made absolute against this process'
+    working directory; an empty root (the adapter's packaged default) and the licensed body files (part of the
+    fits' key as written) stay as given, and so does everything else of the job."""
+    from m3t.fitting.cluster import for_workers
+
+    job = fit_job(tmp_path, "synthetic", tmp_path)
+    relative = dataclasses.replace(job, run=dataclasses.replace(job.run, cache_dir=".cache/fit"),
+                                   source=dataclasses.replace(job.source, root="data/corpus"),
+                                   body=dataclasses.replace(job.body, cache_dir=".cache/anny"))
+    monkeypatch.chdir(tmp_path)
+    moved = for_workers(relative)
+    assert moved.run.cache_dir == str(tmp_path / ".cache" / "fit")
+    assert moved.source.root == str(tmp_path / "data" / "corpus")
+    assert moved.body.cache_dir == str(tmp_path / ".cache" / "anny")
+    assert moved.body.smplx_path == relative.body.smplx_path == "models/smplx/SMPLX_NEUTRAL.npz"
+    assert moved.source.options == relative.source.options and moved.run.workers == relative.run.workers
+    assert (moved.corpus, moved.shards_dir, moved.fitting, moved.tracker) == (
+        relative.corpus, relative.shards_dir, relative.fitting, relative.tracker)
+    assert for_workers(moved) == moved  # absolute paths stay
+    packaged = for_workers(dataclasses.replace(relative, source=dataclasses.replace(relative.source, root="")))
+    assert packaged.source.root == ""
+
+
+class SchedulerClient:
+    """What :class:`m3t.fitting.cluster.DaskExecutor` asks of a ``distributed.Client``: its scheduler's address
+    and ``identity`` (asked through ``sync``), an executor, ``status`` and ``close``; every call recorded."""
+
+    def __init__(self, identity=None, fail: Exception | None = None, status: str = "running"):
+        self.status, self.identity, self.fail = status, identity or {}, fail
+        self.calls: list = []
+        self.submitted: list = []
+        self.scheduler = type("Scheduler", (), {"address": "tcp://10.0.0.2:8786", "identity": object()})()
+        client = self
+
+        class Tasks:
+            def submit(self, fn, *args, key=None, **kwargs):
+                client.submitted.append((fn, args, key, kwargs))
+                return "future"
+
+            def shutdown(self, wait=True):
+                client.calls.append(("executor.shutdown", wait))
+
+        self.tasks = Tasks()
+
+    def get_executor(self):
+        return self.tasks
+
+    def sync(self, fn, **kwargs):
+        self.calls.append(("sync", fn, kwargs))
+        if self.fail is not None:
+            raise self.fail
+        return self.identity
+
+    def close(self, timeout=None):
+        self.calls.append(("close", timeout))
+        self.status = "closed"
+
+
+def test_a_dask_executor_keeps_one_task_per_worker_thread_in_flight():
+    from m3t.fitting.cluster import CONNECT_SECONDS, DaskExecutor
+
+    client = SchedulerClient({"total_threads": 3, "workers": {}})
+    executor = DaskExecutor(client)
+    assert executor.address == "tcp://10.0.0.2:8786" and executor.capacity() == 3
+    # the scheduler's summary without per-worker details, asked with a timeout
+    assert client.calls == [("sync", client.scheduler.identity, {"n_workers": 0, "callback_timeout": CONNECT_SECONDS})]
+    executor.check()
+    assert len(client.calls) == 2 and client.calls[1] == client.calls[0]
+    for identity in ({"total_threads": 0}, {}):  # no worker yet: one task waits for one to join
+        assert DaskExecutor(SchedulerClient(identity)).capacity() == 1
+
+
+@pytest.mark.parametrize("client, why", [
+    (SchedulerClient(status="closed"), "the client's connection is closed"),
+    (SchedulerClient(fail=OSError("Timed out trying to connect")),
+     "it did not answer within 30 s: OSError: Timed out trying to connect"),
+])
+def test_a_lost_scheduler_stops_the_run_naming_its_address(client, why):
+    from m3t.fitting.cluster import DaskExecutor, SchedulerLost
+
+    executor = DaskExecutor(client)
+    for ask in (executor.check, executor.capacity):
+        with pytest.raises(SchedulerLost) as info:
+            ask()
+        assert str(info.value) == (f"lost the Dask scheduler at tcp://10.0.0.2:8786 ({why}); finished clips are "
+                                   "cached, rerun to resume")
+
+
+def test_a_dask_task_carries_the_workers_job_and_a_key_of_its_own(tmp_path, monkeypatch):
+    from m3t.fitting.cluster import DaskExecutor, on_worker
+    from m3t.fitting.corpus import fit_batch
+
+    job = fit_job(tmp_path, "synthetic", tmp_path)
+    job = dataclasses.replace(job, run=dataclasses.replace(job.run, cache_dir="cache"))
+    monkeypatch.chdir(tmp_path)
+    client = SchedulerClient()
+    executor = DaskExecutor(client)
+    assert executor.submit(fit_batch, job, ["clip"], extra=1) == "future"
+    executor.submit(fit_batch, job, ["clip"])
+    (fn, args, key, kwargs), again = client.submitted
+    assert fn is on_worker and args[0] is fit_batch and args[2] == ["clip"] and kwargs == {"extra": 1}
+    assert args[1].run.cache_dir == str(tmp_path / "cache")  # the job as the workers must see it
+    assert key.startswith("fit-clips-") and again[2].startswith("fit-clips-") and key != again[2]
+
+
+def test_a_dask_executor_closes_its_client_and_only_the_cluster_it_started():
+    from m3t.fitting.cluster import CONNECT_SECONDS, DaskExecutor
+
+    client, cluster = SchedulerClient(), FakeCluster()
+    DaskExecutor(client, cluster).shutdown()
+    assert client.calls == [("executor.shutdown", True), ("close", CONNECT_SECONDS)] and cluster.closed
+    for kwargs in ({"cancel_futures": True}, {"wait": False}):  # a stopped run waits for nothing
+        client = SchedulerClient()
+        DaskExecutor(client).shutdown(**kwargs)
+        assert client.calls == [("close", CONNECT_SECONDS)]
+    lost = SchedulerClient(status="closed")
+    DaskExecutor(lost).shutdown()
+    assert lost.calls == [("close", CONNECT_SECONDS)]
+
+    class Failing(SchedulerClient):
+        def close(self, timeout=None):
+            raise OSError("connection reset")
+
+    cluster = FakeCluster()
+    with pytest.raises(OSError, match="connection reset"):
+        DaskExecutor(Failing(), cluster).shutdown()
+    assert cluster.closed  # the local cluster is closed whatever the client did
+
+
+def test_only_a_dead_dask_worker_quarantines_a_batch():
+    from types import SimpleNamespace
+
+    from distributed.comm.core import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    from m3t.fitting.cluster import worker_died
+
+    assert worker_died(KilledWorker("fit-clips-1", SimpleNamespace(address="tcp://10.0.0.7:4000"), 3))
+    assert worker_died(CommClosedError("in <TCP (closed)>: Stream is closed"))
+    assert not worker_died(ValueError("a bad clip")) and not worker_died(MemoryError())
+
+
+def test_a_process_pools_failures_are_never_taken_for_dead_dask_workers(monkeypatch):
+    """Only Dask raises a dead worker's errors: without Dask imported, nothing is one, and Dask stays unimported."""
+    import sys
+
+    from m3t.fitting.cluster import worker_died
+
+    monkeypatch.delitem(sys.modules, "distributed", raising=False)
+    assert not worker_died(MemoryError()) and not worker_died(OSError("Broken pipe"))
+    assert "distributed" not in sys.modules
+
+
+# ------------------------------------------------------------------------------------------ keys and paths
+def test_a_jobs_key_follows_its_content_not_the_order_options_were_written_in(tmp_path):
+    from m3t.fitting.corpus import worker_context
+
+    def job(options):
+        return fit_job(tmp_path, "posefile", tmp_path, options)
+
+    a, b = job({"index": "index.csv", "language": "ase"}), job({"language": "ase", "index": "index.csv"})
+    assert a == b and a.key() == b.key() and len(a.key()) == 16
+    assert job({"index": "other.csv", "language": "ase"}).key() != a.key()
+    assert dataclasses.replace(a, shards_dir="elsewhere").key() != a.key()
+    assert worker_context(a) is worker_context(b)  # one context (one body model) per process and job
+    assert worker_context(job({"index": "other.csv"})) is not worker_context(a)
+
+
+def test_the_listings_refused_rows_become_quarantine_records():
+    from m3t.corpora.base import Listing, Quarantined
+    from m3t.fitting.corpus import listing_outcomes
+
+    listing = Listing((), (Quarantined("index.csv", 7, "c7", "no split: 'val' is not train, dev or test; fix row 7"),
+                           Quarantined("annotations/train.corpus.csv", 3, None, "3 '|'-separated columns, expected 7")))
+    first, second = listing_outcomes(listing)
+    assert first == ClipOutcome("c7", "", "quarantined", reason="no split: 'val' is not train, dev or test; fix row 7",
+                                file="index.csv", row=7, group="listing: no split", from_listing=True)
+    assert (second.clip_id, second.split, second.status, second.file, second.row) == (
+        "", "", "quarantined", "annotations/train.corpus.csv", 3)
+    assert second.group == "listing: 3 '|'-separated columns, expected 7" and second.from_listing
+    assert second.part is None and second.frames == 0 and second.metrics == {}
+    long = listing_outcomes(Listing((), (Quarantined("f", None, "x", "a" * 80 + ": detail"),)))[0]
+    assert long.group == "listing: " + "a" * 60 and long.row is None
+
+
+def test_a_clips_part_file_lies_in_the_parts_folder_of_the_cache(tmp_path):
+    from m3t.fitting.corpus import part_path
+
+    ctx = FitContext(fit_job(tmp_path, "synthetic", tmp_path))
+    clip = Clip("session/c1", "synthetic", "train", "ASL-SYN", "s0", "", "", "motion/c1.npz", 25.0)
+    assert part_path(clip, "0123abcd", ctx) == tmp_path / "cache" / "parts" / "session_c1-0123abcd.parquet"
+
+
+def test_a_part_comes_from_the_cache_only_with_its_record_and_its_digest(tmp_path):
+    """A part file is reused when its init record exists and its bytes match the SHA-256 written beside it; a
+    missing record or a flipped byte redoes it, and a part cached before digests existed is trusted once it
+    reads back (and then gets its digest)."""
+    import hashlib
+
+    root = cfx.build_slt_import(tmp_path / "slt").root
+    ctx = slt_ctx(tmp_path, root)
+    clip = clips_of(ctx)["train__clip0"]
+    first = process_clip(clip, ctx)
+    part = Path(first.part)
+    record, digest = part.with_suffix(".init.json"), part.with_suffix(".sha256")
+    assert first.status == "fitted" and json.loads(record.read_text()) == first.init
+    assert part.parent == tmp_path / "cache" / "parts"
+    assert digest.read_text() == hashlib.sha256(part.read_bytes()).hexdigest()
+    record.unlink()
+    redone = process_clip(clip, ctx)
+    assert (redone.status, redone.part, redone.init) == ("fitted", first.part, first.init) and record.exists()
+    assert process_clip(clip, ctx).status == "cached"
+    data = bytearray(part.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    part.write_bytes(bytes(data))
+    assert process_clip(clip, ctx).status == "fitted"
+    assert digest.read_text() == hashlib.sha256(part.read_bytes()).hexdigest()
+    digest.unlink()
+    cached = process_clip(clip, ctx)
+    assert (cached.status, cached.part, cached.frames) == ("cached", first.part, first.frames) and digest.exists()
+    digest.unlink()
+    part.write_bytes(b"not a parquet file")
+    assert process_clip(clip, ctx).status == "fitted"  # unreadable and no digest: redone
+
+
+def test_an_import_refused_at_its_id_is_quarantined_with_every_field(tmp_path):
+    root = cfx.build_slt_import(tmp_path / "slt").root
+    ctx = slt_ctx(tmp_path, root)
+    clip = dataclasses.replace(clips_of(ctx)["train__clip1"], id="../clip1", split="dev")
+    outcome = process_clip(clip, ctx)
+    assert (outcome.clip_id, outcome.split, outcome.status, outcome.part, outcome.group, outcome.file, outcome.row) == (
+        "../clip1", "dev", "quarantined", None, "unsafe clip id", clip.media, None)
+    assert outcome.reason == ("ClipRefused: clip id '../clip1' is empty, '.' or '..', or holds a path separator; it "
+                              f"would name a file outside the cache: rename the clip in {clip.media}")
+    assert 0 < outcome.seconds < 60 and not outcome.from_listing
+    assert not (tmp_path / "cache" / "parts").exists()  # nothing written for it
+
+
+@pytest.mark.parametrize("clip_id", ["", ".", "..", "a/b", "a\\b", "a\0b"])
+def test_an_import_refuses_a_clip_id_that_would_name_a_file_outside_the_cache(clip_id):
+    from m3t.fitting.imports import check_importable
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, settings = import_kw()
+    clip = dataclasses.replace(clip, id=clip_id)
+    with pytest.raises(ClipRefused) as info:
+        check_importable(clip, "keypoints", settings)
+    assert info.value.group == "unsafe clip id"
+    assert str(info.value).startswith(f"clip id {clip_id!r} is empty, '.' or '..', or holds a path separator; ")
+    assert str(info.value).endswith("rename the clip in M003/front/c7.hdf5")
+
+
+def test_smplx_and_flame_imports_need_smplfx_and_slt_arrays_any_body_model():
+    from m3t.fitting.imports import ImportSettings, check_importable
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, smplfx = import_kw()
+    anny = ImportSettings("anny", 100)
+    for kind, what in (("smplx_params", "SOKE SMPL-X parameters"), ("flame_params", "MEAD FLAME parameters")):
+        check_importable(clip, kind, smplfx)
+        with pytest.raises(ClipRefused) as info:
+            check_importable(clip, kind, anny)
+        assert info.value.group == "needs body.model: smplfx"
+        assert str(info.value) == (f"clip c7: {what} are imported into SMPL-FX streams, which needs body.model: "
+                                   "smplfx (it is 'anny')")
+    check_importable(clip, "keypoints", anny)
+
+
+def test_a_video_clips_track_follows_its_bytes_its_frame_rate_and_the_mediapipe_settings(pose_root, tmp_path,
+                                                                                          monkeypatch):
+    """MediaPipe is replaced by a recorder returning a real track: the cache key is what is tested."""
+    import m3t.fitting.corpus as engine
+
+    pose = pose_ctx(tmp_path, pose_root, None)
+    track = load_track(track_clip(clips_of(pose)["plain-a"], pose))
+    tracked = []
+    monkeypatch.setattr(engine, "track_real_clip",
+                        lambda clip, root, cfg: tracked.append((clip.id, root, cfg)) or track)
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    (videos / "v1.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42 first")
+    (videos / "index.csv").write_text("id,path,split,text,language,signer\n")
+
+    def ctx(**sections):
+        return FitContext(fit_job(tmp_path, "posefile", videos, {"index": "index.csv"}, **sections))
+
+    clip = Clip("v1", "posefile", "train", "ase", "s0", "", "", "v1.mp4", 25.0, extra=(("media_kind", "video"),))
+    first = track_clip(clip, ctx())
+    assert first.parent == tmp_path / "cache" / "tracks" and first.name.startswith("v1-")
+    assert tracked == [("v1", videos, ctx().job.mediapipe)]
+    assert track_clip(clip, ctx()) == first and len(tracked) == 1  # the same settings: the cached track
+    strict = ctx(mediapipe={"min_detection_confidence": 0.8})
+    assert track_clip(clip, strict) not in (first,) and tracked[-1][2].min_detection_confidence == 0.8
+    assert track_clip(dataclasses.replace(clip, fps=30.0), ctx()) not in (first,)
+    (videos / "v1.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42 second")
+    assert track_clip(clip, ctx()) not in (first,) and len(tracked) == 4
+
+
+def test_a_failed_batch_fit_fits_the_clips_it_had_not_finished_one_by_one(body, synthetic_root, tmp_path, monkeypatch):
+    import m3t.fitting.corpus as engine
+
+    ctx = synthetic_ctx(tmp_path, synthetic_root, body, fit_corpus={"batch_clips": 2})
+    clips = clips_of(ctx)
+    pair = [clips["s0-b"], clips["s0-c"]]
+    batch = process_batch(pair, ctx)
+    Path(batch[1].part).unlink()  # the second clip's part is lost; the first stays cached
+
+    def diverges(tracks, ctx):
+        raise FloatingPointError("the batch fit diverged")
+
+    monkeypatch.setattr(engine, "fit_signer_batch", diverges)
+    outcomes = process_batch(pair, ctx)
+    assert [(o.clip_id, o.status) for o in outcomes] == [("s0-b", "cached"), ("s0-c", "fitted")]
+    assert outcomes[0].part == batch[0].part and outcomes[1].part != batch[1].part
+    assert outcomes[1].init == {"init_source": "simulated tracker initialisation"}  # its own fit, its own identity
+    alone = process_batch(pair, synthetic_ctx(tmp_path, synthetic_root, body,
+                                              fit_corpus={"batch_clips": 2, "batch_frames": 9}))
+    assert [(o.clip_id, o.status) for o in alone] == [("s0-b", "fitted"), ("s0-c", "cached")]
+    assert alone[0].init == {"init_source": "simulated tracker initialisation"}
+
+
+# ------------------------------------------------------------------------------------------ the run's scheduler
+class BareExecutor:
+    """An in-process stand-in for a process pool: ``submit`` records what it is sent and returns a future that
+    ``plan(batch)`` settles at once (a list of outcomes, or an exception) or leaves pending (None) for the test
+    to settle (:meth:`settle`); no process, no cluster."""
+
+    def __init__(self, plan):
+        self.plan, self.sent, self.futures = plan, [], {}
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        future = Future()
+        self.sent.append((fn, args))
+        self.futures[tuple(c.id for c in args[1])] = future
+        result = self.plan(args[1])
+        if isinstance(result, BaseException):
+            future.set_exception(result)
+        elif result is not None:
+            future.set_result(result)
+        return future
+
+    def settle(self, *clip_ids: str) -> None:
+        future = self.futures[clip_ids]
+        if not future.done():
+            future.set_result([ClipOutcome(i, "train", "fitted", frames=3, seconds=0.5) for i in clip_ids])
+
+
+class ClusterExecutor(BareExecutor):
+    """A stand-in for :class:`m3t.fitting.cluster.DaskExecutor`: ``capacity()`` worker threads and ``check()``,
+    which counts the questions and raises ``lost`` when it is set."""
+
+    def __init__(self, plan, slots: int, lost: Exception | None = None):
+        super().__init__(plan)
+        self.slots, self.lost, self.checks = slots, lost, 0
+
+    def capacity(self) -> int:
+        return self.slots
+
+    def check(self) -> None:
+        self.checks += 1
+        if self.lost is not None:
+            raise self.lost
+
+
+def fitted(batch) -> list[ClipOutcome]:
+    return [ClipOutcome(c.id, c.split, "fitted", frames=3, seconds=0.5) for c in batch]
+
+
+def signer_clips(*signers: str) -> list[Clip]:
+    """Clips ``<signer><n>`` of the given signers (one letter each), listed in that order; never opened."""
+    seen: dict[str, int] = {}
+    out = []
+    for s in signers:
+        seen[s] = seen.get(s, 0) + 1
+        clip_id = f"{s}{seen[s]}"
+        out.append(Clip(clip_id, "synthetic", "dev", "ASL-SYN", s, "", "", f"motion/{clip_id}.npz", 25.0))
+    return out
+
+
+def test_a_cluster_gets_at_most_its_capacity_and_each_batch_counts_when_it_ends(body, tmp_path, capsys):
+    """Two worker threads: two batches in flight; a slow batch does not hold back the report of those sent after
+    it, and the progress bar counts every clip."""
+    import threading
+
+    from m3t.fitting.corpus import fit_batch, run_fit_corpus
+
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus")
+    clips = signer_clips("a", "b", "c", "d")
+    executor = ClusterExecutor(lambda batch: None if batch[0].id == "b1" else fitted(batch), slots=2)
+    seen = []
+
+    def on_outcome(outcome: ClipOutcome) -> None:
+        seen.append((outcome.clip_id, executor.futures[("b1",)].done(), len(executor.sent)))
+        if outcome.clip_id == "d1":
+            executor.settle("b1")
+
+    late = threading.Timer(3.0, executor.settle, ("b1",))  # never needed unless the run waits for every batch
+    late.start()
+    try:
+        report = run_fit_corpus(job, executor, clips=clips, progress=True, on_outcome=on_outcome,
+                                ctx=FitContext(job, body))
+    finally:
+        late.cancel()
+    # b1 holds one of the two slots throughout: the others go one at a time
+    assert seen == [("a1", False, 2), ("c1", False, 3), ("d1", False, 4), ("b1", True, 4)]
+    assert [args for _, args in executor.sent] == [(job, [c]) for c in (clips[0], clips[1], clips[2], clips[3])]
+    assert all(fn is fit_batch for fn, _ in executor.sent)
+    assert [o.clip_id for o in report.outcomes] == ["a1", "b1", "c1", "d1"] and report.summary["clips_fitted"] == 4
+    bar = capsys.readouterr().err
+    assert "fit-corpus synthetic" in bar and "4/4" in bar
+
+
+def test_a_run_shows_its_progress_bar_only_when_asked(body, tmp_path, capsys):
+    from m3t.fitting.corpus import run_fit_corpus
+
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus")
+    run_fit_corpus(job, ClusterExecutor(fitted, slots=1), clips=signer_clips("a", "a"), progress=False,
+                   ctx=FitContext(job, body))
+    assert "fit-corpus" not in capsys.readouterr().err
+
+
+def test_while_no_batch_ends_the_run_asks_whether_the_cluster_is_still_there(tmp_path, monkeypatch):
+    import threading
+
+    import m3t.fitting.corpus as engine
+    from m3t.fitting.cluster import SchedulerLost
+
+    monkeypatch.setattr(engine, "POLL_SECONDS", 0.02)
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus")
+    clips = signer_clips("a", "b")
+    cluster = ClusterExecutor(lambda batch: None, slots=4)
+    threading.Timer(0.3, lambda: [cluster.settle(i) for i in ("a1", "b1")]).start()
+    assert sorted(o.clip_id for o in engine._outcomes(job, clips, cluster, None)) == ["a1", "b1"]
+    assert cluster.checks >= 2
+
+    pool = BareExecutor(lambda batch: None)  # no capacity: every batch at once; no check: only waiting
+    sent = []
+    threading.Timer(0.3, lambda: [sent.append(len(pool.sent)), *[pool.settle(i) for i in ("a1", "b1")]]).start()
+    assert sorted(o.clip_id for o in engine._outcomes(job, clips, pool, None)) == ["a1", "b1"] and sent == [2]
+
+    gone = ClusterExecutor(lambda batch: None, slots=4, lost=SchedulerLost("lost the Dask scheduler at tcp://s:8786"))
+    with pytest.raises(SchedulerLost, match="tcp://s:8786"):
+        list(engine._outcomes(job, clips, gone, None))
+    assert all(f.cancelled() for f in gone.futures.values())  # nothing left running for nobody
+
+
+def test_a_batch_whose_worker_died_is_quarantined_and_the_run_goes_on(tmp_path):
+    from types import SimpleNamespace
+
+    from distributed.scheduler import KilledWorker
+
+    from m3t.fitting.corpus import _outcomes
+
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus", fit_corpus={"batch_clips": 2})
+    clips = signer_clips("a", "b", "a")
+    killed = KilledWorker("fit-clips-7", SimpleNamespace(address="tcp://10.0.0.7:4000"), 3)
+    executor = ClusterExecutor(lambda batch: killed if batch[0].signer == "a" else fitted(batch), slots=1)
+    outcomes = {o.clip_id: o for o in _outcomes(job, clips, executor, None)}
+    assert [args[1] for _, args in executor.sent] == [[clips[0], clips[2]], [clips[1]]]  # one batch per signer
+    assert outcomes["b1"].status == "fitted"
+    for clip in (clips[0], clips[2]):
+        assert outcomes[clip.id] == ClipOutcome(
+            clip.id, "dev", "quarantined", group="worker died", file=clip.media,
+            reason=f"worker died while fitting this clip: KilledWorker: {killed} (the next run retries it)")
+
+
+def test_a_failing_task_stops_the_run_and_cancels_the_others(tmp_path):
+    from concurrent.futures.process import BrokenProcessPool
+
+    from m3t.fitting.cluster import SchedulerLost
+    from m3t.fitting.corpus import _outcomes
+
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus")
+    clips = signer_clips("a", "b")
+
+    def failing(error):
+        return ClusterExecutor(lambda batch: error if batch[0].id == "a1" else None, slots=2)
+
+    bug = failing(ValueError("an engine bug"))
+    with pytest.raises(ValueError, match="^an engine bug$"):
+        list(_outcomes(job, clips, bug, None))
+    assert bug.futures[("b1",)].cancelled()
+
+    pool = failing(BrokenProcessPool("A child process terminated abruptly"))
+    with pytest.raises(RuntimeError) as info:
+        list(_outcomes(job, clips, pool, None))
+    assert str(info.value) == ("a fit-corpus worker process died (out of memory or killed); finished clips are "
+                               "cached, rerun to resume")
+    assert isinstance(info.value.__cause__, BrokenProcessPool) and pool.futures[("b1",)].cancelled()
+
+    class Cancelling(ClusterExecutor):
+        def submit(self, fn, *args):
+            future = super().submit(fn, *args)
+            if args[1][0].id == "a1":
+                future.cancel()  # what Dask does to every task when the scheduler connection drops
+                future.set_running_or_notify_cancel()  # as an executor does: waiters see it end
+            return future
+
+    cancelled = Cancelling(lambda batch: None, slots=2)
+    with pytest.raises(RuntimeError) as info:
+        list(_outcomes(job, clips, cancelled, None))
+    assert str(info.value) == "clip a1: the executor cancelled its task; finished clips are cached, rerun to resume"
+    assert cancelled.checks == 1 and cancelled.futures[("b1",)].cancelled()
+    lost = Cancelling(lambda batch: None, slots=2, lost=SchedulerLost("lost the Dask scheduler at tcp://s:8786"))
+    with pytest.raises(SchedulerLost):  # the scheduler's loss is the reason given, when that is what happened
+        list(_outcomes(job, clips, lost, None))
+
+
+def test_fit_and_log_hands_the_mlflow_run_the_ground_truth_of_synthetic_clips(body, synthetic_root, tmp_path,
+                                                                              monkeypatch, capsys):
+    """What :func:`m3t.fitting.corpus.fit_and_log` gives the MLflow logger (replaced by a recorder): the corpus'
+    sections, the report, the body model to picture with and, for synthetic clips, their ground truth."""
+    import m3t.fitting.corpus as engine
+    import m3t.fitting.report as reporting
+    from m3t.corpora.synthetic import SyntheticCorpus
+
+    monkeypatch.setattr(engine, "load_body_model", lambda cfg: body)
+    logged = []
+    monkeypatch.setattr(reporting, "log_fit_corpus", lambda *args: logged.append(args) or "run-id")
+    job = fit_job(tmp_path, "synthetic", synthetic_root, fit_corpus={"max_clips": 1, "render_clips": 1})
+    experiment = object()
+    seen = []
+    report = engine.fit_and_log(job, experiment, progress=False, on_outcome=seen.append)
+    assert "fit-corpus" not in capsys.readouterr().err  # no progress bar asked for
+    assert [o.clip_id for o in seen] == ["s0-a"] and report.outcomes == seen
+    ((to, params, got, model, corpus, shards_dir, cache_dir, render, truth),) = logged
+    assert (to, got, model, corpus, shards_dir, cache_dir, render) == (
+        experiment, report, body, "synthetic", job.shards_dir, job.run.cache_dir, 1)
+    assert params["corpus"] == "synthetic" and params["shards_dir"] == job.shards_dir
+    assert params["corpora.synthetic"] == {"root": str(synthetic_root), "options": {}}
+    assert params["tracker.seed"] == job.tracker.seed and params["fitting.iterations"] == 4
+    assert not [k for k in params if k.startswith("fusion.")]
+    clip = report.outcomes[0]
+    want = SyntheticCorpus(str(synthetic_root)).ground_truth(clips_of(FitContext(job))[clip.clip_id])
+    got_params, got_identity, got_camera = truth(clips_of(FitContext(job))[clip.clip_id])
+    assert all(np.array_equal(got_params[k], want[0][k]) for k in want[0])
+    assert np.array_equal(got_identity, want[1]) and got_camera == want[2]
+
+    logged.clear()
+    engine.fit_and_log(job, experiment, log=False, progress=True)
+    assert logged == [] and "fit-corpus synthetic" in capsys.readouterr().err
+
+
+def test_fit_and_log_pictures_nothing_for_feature_shards(tmp_path, monkeypatch):
+    import m3t.fitting.corpus as engine
+    import m3t.fitting.report as reporting
+
+    logged = []
+    monkeypatch.setattr(reporting, "log_fit_corpus", lambda *args: logged.append(args))
+    job = fit_job(tmp_path, "slt_pickle", cfx.build_slt_import(tmp_path / "slt").root,
+                  body={"flame_path": str(tmp_path / "absent.pkl")}, fit_corpus={"render_clips": 2})
+    engine.fit_and_log(job, "experiment", progress=False)
+    ((_, params, _, model, corpus, _, _, render, truth),) = logged
+    assert (model, corpus, render, truth) == (None, "slt_pickle", 0, None)
+    assert params["fusion.use_external"] is True and not [k for k in params if k.startswith("tracker.")]
+
+
+# ------------------------------------------------------------------------------------------ the solver (more)
+def test_lbfgs_line_search_reaches_the_minimum_of_a_robust_loss():
+    """A pseudo-Huber loss (curvature vanishing far from its minimum): full quasi-Newton steps overshoot and run
+    away; the strong-Wolfe line search keeps every step a descent and reaches the minimum within the budget."""
+    from m3t.fitting.fit import FittingConfig, _minimise
+
+    x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
+    curve: list[float] = []
+    _minimise(lambda: torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(iterations=30), "full", 0.0, curve)
+    assert len(curve) <= 30 and curve[-1] == pytest.approx(3.0, abs=1e-9)
+    np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-4)
+
+
+def test_a_fit_uses_the_landmark_correspondence_it_is_given(body, short_track):
+    from m3t.fitting.fit import FittingConfig, fit_track, fit_tracks
+    from m3t.trackers.track import landmark_slices
+
+    cfg = FittingConfig(iterations=2, camera_iterations=2)
+    default = body.correspondence(short_track.landmark_set)
+    nowhere = dataclasses.replace(default, kind=np.full_like(default.kind, -1))
+    with pytest.raises(ValueError, match=r"^the track has no visible landmark with a body-model correspondence"):
+        fit_track(short_track, body, cfg, nowhere)
+    pose = landmark_slices(short_track.landmark_set)["pose"]
+    pose_only = dataclasses.replace(default, kind=np.where(np.arange(len(default.kind)) < pose.stop, default.kind, -1))
+    result = fit_track(short_track, body, cfg, pose_only)
+    assert np.array_equal(result.params["body"], fit_tracks([short_track], body, cfg, pose_only)[0].params["body"])
+    assert not np.array_equal(result.params["body"], fit_track(short_track, body, cfg).params["body"])
+
+
+def test_the_camera_is_placed_from_the_torso_and_head_points_alone(body, short_track):
+    """The camera-only stage ignores the arms (pose points 13-22: elbows, wrists, hand points), the hands and the
+    face mesh, which start far from the rest pose; the shoulders, the hips and the head's pose points place it."""
+    from m3t.fitting.fit import FittingConfig, fit_track
+    from m3t.trackers.track import landmark_slices
+
+    cfg = FittingConfig(iterations=0, camera_iterations=3)
+    parts = landmark_slices(short_track.landmark_set)
+
+    def camera(*shift: tuple[slice, float]) -> dict:
+        keypoints = short_track.keypoints.copy()
+        for where, by in shift:
+            keypoints[:, where] += by
+        return fit_track(dataclasses.replace(short_track, keypoints=keypoints), body, cfg).camera
+
+    placed = camera()
+    pose = parts["pose"].start
+    moved = camera((slice(pose + 13, pose + 23), 60.0), (parts["left_hand"], -50.0), (parts["right_hand"], 50.0),
+                   (parts["face"], 30.0))
+    assert moved["translation"] == placed["translation"] and moved["rotation"] == placed["rotation"]
+    # shoulders, hip, nose
+    for kept in (slice(pose + 11, pose + 13), slice(pose + 23, pose + 24), slice(pose, pose + 1)):
+        assert camera((kept, 60.0))["translation"] != placed["translation"], kept
+
+
+# ------------------------------------------------------------------------------------------ fusion
+def test_a_body_model_that_cannot_take_the_trackers_is_told_what_and_why():
+    from m3t.fitting.fusion import FusionUnsupported
+
+    exc = FusionUnsupported("anny", ("nlf -> body: 2 of its 2 joints are not SMPL-X joints", "wilor -> left_hand: x"))
+    assert isinstance(exc, ValueError) and exc.body_model == "anny" and len(exc.unusable) == 2
+    assert str(exc) == ("body model 'anny' cannot take nlf -> body: 2 of its 2 joints are not SMPL-X joints; "
+                        "wilor -> left_hand: x (the tracker converters need SMPL-FX's SMPL-X / FLAME layout)")
+
+
+def test_unusable_tracker_streams_name_the_first_three_offending_labels():
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import unusable_outputs
+    from m3t.trackers.external import TRACKERS
+
+    assert unusable_outputs(smplfx_layout(100), TRACKERS) == ()
+    layout = ModalityLayout((Modality("body", "rotation6d", ("spine01", "upperarm01_l", "neck01")),
+                             Modality("left_hand", "scalar", ("curl",)),
+                             Modality("face", "scalar", ("jawOpen", "eyeBlink_L"))),
+                            ("age", "gender", "height", "weight"))
+    assert unusable_outputs(layout, ("nlf", "pixel3dmm")) == (
+        "nlf -> body: 3 of its 3 joints are not SMPL-X joints ('spine01', 'upperarm01_l', 'neck01')",
+        "nlf -> left_hand: left_hand is scalar, the converters write rotations",
+        "nlf -> right_hand: the layout has no 'right_hand' modality",
+        "nlf -> identity: identity ('age', 'gender', 'height', ...) lacks the 10 SMPL-X betas 'smplx_beta_<i>'",
+        ("pixel3dmm -> face: face is 2 values ('jawOpen', 'eyeBlink_L'), not FLAME's 100 expressions + 2 eyelids + "
+         "jaw rotation"),
+        "pixel3dmm -> identity: identity ('age', 'gender', 'height', ...) has no FLAME shape 'flame_shape_<iii>'")
+    mixed = ModalityLayout((Modality("body", "rotation6d", ("neck", "spine01", "left_wrist")),), ("smplx_beta_0",))
+    assert unusable_outputs(mixed, ("wilor",)) == ("wilor -> left_hand: the layout has no 'left_hand' modality",
+                                                   "wilor -> right_hand: the layout has no 'right_hand' modality")
+    assert unusable_outputs(mixed, ("nlf",))[0] == "nlf -> body: 1 of its 3 joints are not SMPL-X joints ('spine01')"
+
+
+def face_estimates(frames: list[int], expression_dims: int = 100):
+    """Pixel3DMM's per-frame estimates as :func:`m3t.trackers.external.read_pixel3dmm` returns them."""
+    from m3t.trackers.external import FaceEstimates
+
+    n = len(frames)
+    rng = np.random.default_rng(4)
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    return FaceEstimates(np.array(frames), rng.normal(size=(n, expression_dims)), rng.uniform(size=(n, 2)), eye, eye,
+                         eye, np.zeros((n, 3)), np.zeros(300))
+
+
+def test_pixel3dmm_face_values_land_on_their_frames_of_a_flame_face_layout():
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import pixel3dmm_stream
+
+    face = face_estimates([0, 2, 7])
+    stream = pixel3dmm_stream(face, smplfx_layout(100), 5)  # frame 7 lies outside the 5-frame clip
+    assert stream.source == "pixel3dmm" and stream.values.shape == (5, 108)
+    np.testing.assert_array_equal(stream.confidence, [1, 0, 1, 0, 0])
+    np.testing.assert_array_equal(stream.values[2, :100], face.expression[1])
+    np.testing.assert_array_equal(stream.values[2, 100:102], face.eyelids[1])
+    np.testing.assert_allclose(stream.values[0, 102:], [1, 0, 0, 0, 1, 0])  # the identity jaw rotation in 6D
+    assert np.isnan(stream.values[1]).all()
+    arkit = ModalityLayout((Modality("face", "scalar", tuple(f"au{i}" for i in range(52))),), ("age",))
+    with pytest.raises(ValueError, match=r"^Pixel3DMM gives 108 face values; the layout's face has 52$"):
+        pixel3dmm_stream(face, arkit, 5)
+
+
+def test_fusion_interpolates_rotations_along_the_geodesic_and_scalars_linearly():
+    import roma
+
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.fitting.fusion import INTERPOLATED, REST, FusionConfig, TrackerStream, fuse, rot_to_flat6d
+
+    def about_z(degrees: float) -> np.ndarray:
+        return rot_to_flat6d(roma.rotvec_to_rotmat(torch.tensor([[0.0, 0.0, np.radians(degrees)]],
+                                                                 dtype=torch.float64)).numpy())
+
+    layout = ModalityLayout((Modality("jaw", "rotation6d", ("jaw",)), Modality("weights", "scalar", ("w0", "w1")),
+                             Modality("hand", "rotation6d", ("wrist",))), ("age",))
+    rest = {"jaw": about_z(0), "weights": np.array([0.5, 0.5]), "hand": about_z(10)}
+    jaw = np.full((5, 6), np.nan)
+    jaw[0], jaw[4] = about_z(0), about_z(80)
+    weights = np.zeros((5, 2))
+    weights[0], weights[4] = (0.0, 1.0), (0.8, 0.2)
+    covered = np.array([1.0, 0, 0, 0, 1.0])
+    fused = fuse(layout, {"jaw": [TrackerStream("pixel3dmm", jaw, covered)],
+                          "weights": [TrackerStream("pixel3dmm", weights, covered)]}, rest, 5, FusionConfig(max_gap=3))
+    for t in range(5):
+        np.testing.assert_allclose(fused.init["jaw"][t], about_z(20 * t), atol=1e-6, err_msg=str(t))
+    np.testing.assert_allclose(fused.init["weights"][2], (0.4, 0.6), atol=1e-6)
+    np.testing.assert_array_equal(fused.source["jaw"], [0, INTERPOLATED, INTERPOLATED, INTERPOLATED, 0])
+    np.testing.assert_array_equal(fused.source["hand"], [REST] * 5)  # no stream: the rest pose
+    np.testing.assert_allclose(fused.init["hand"], np.tile(about_z(10), (5, 1)), atol=1e-7)
+    assert fused.stream_names == {"jaw": ("pixel3dmm",), "weights": ("pixel3dmm",), "hand": ()}
+    assert fused.init["jaw"].dtype == np.float32 and fused.identity is None
+    with pytest.raises(ValueError, match=r"stream 'pixel3dmm' for 'jaw' has shape \(5, 5\) / \(5,\); expected "
+                                         r"\(5, 6\) / \(5,\)"):
+        fuse(layout, {"jaw": [TrackerStream("pixel3dmm", jaw[:, :5], covered)]}, rest, 5)
+
+
+def test_the_initialisation_record_says_which_tracker_gave_each_modalitys_frames():
+    from m3t.fitting.fusion import HELD, INTERPOLATED, REST, FusedInit, describe
+
+    source = {"body": np.array([0, 0, INTERPOLATED, HELD]), "face": np.full(4, REST),
+              "left_hand": np.array([1, 1, 0, REST])}
+    names = {"body": ("nlf:body",), "face": ("pixel3dmm",), "left_hand": ("wilor:left", "nlf:left_hand")}
+    fused = FusedInit({}, source, names, np.zeros(3), ("nlf", "pixel3dmm"), {"nlf": 2, "pixel3dmm": 0})
+    assert describe(fused) == {
+        "init_share_tracker_body": 0.5, "init_share_nlf_body": 0.5, "init_share_interpolated_body": 0.25,
+        "init_share_held_body": 0.25, "init_share_rest_body": 0.0,
+        "init_share_tracker_face": 0.0, "init_share_pixel3dmm_face": 0.0, "init_share_interpolated_face": 0.0,
+        "init_share_held_face": 0.0, "init_share_rest_face": 1.0,
+        "init_share_tracker_left_hand": 0.75, "init_share_wilor_left_hand": 0.25, "init_share_nlf_left_hand": 0.5,
+        "init_share_interpolated_left_hand": 0.0, "init_share_held_left_hand": 0.0, "init_share_rest_left_hand": 0.25,
+        "init_outside_frames_nlf": 2.0, "init_outside_frames_pixel3dmm": 0.0,
+        "init_source": "fused: nlf, wilor", "init_identity": "nlf, pixel3dmm"}
+    unused = describe(FusedInit({}, {"face": np.full(4, REST)}, {"face": ("pixel3dmm",)}, None))
+    assert unused["init_source"] == "rest pose: no external tracker estimate reached fusion.min_confidence"
+    assert unused["init_identity"] == "default"
+    nothing = describe(FusedInit({}, {"face": np.full(4, REST)}, {"face": ()}, None))
+    assert nothing["init_source"] == "rest pose: no external tracker outputs"
+
+
+def test_refinement_starts_from_the_fused_initialisation_and_identity(body, short_track):
+    from m3t.fitting.fit import FittingConfig
+    from m3t.fitting.fusion import FusedInit, refine
+
+    cfg = FittingConfig(iterations=0, camera_iterations=1)  # no joint stage: the result is where it started
+    init = {k: v[::-1].copy() for k, v in short_track.init.items()}  # another valid motion than the track's own
+    identity = np.array([0.3, 0.6, 0.4, 0.5, 0.5, 0.7], np.float32)
+    result = refine(short_track, FusedInit(init, {}, {}, identity), body, cfg)
+    for k, v in init.items():
+        np.testing.assert_allclose(result.params[k], v, atol=1e-5, err_msg=k)
+    np.testing.assert_array_equal(result.identity, identity)
+    default = refine(short_track, FusedInit(init, {}, {}, None), body, cfg)
+    np.testing.assert_array_equal(default.identity, body.default_identity().numpy())
+    with pytest.raises(ValueError, match=r"disagree on the number of frames \(3\)"):
+        refine(short_track, FusedInit({k: v[:2] for k, v in init.items()}, {}, {}, None), body, cfg)
+
+
+# ------------------------------------------------------------------------------------------ imports and reports
+def test_a_flame_source_with_more_expressions_than_flame_2020_is_refused_naming_the_clip():
+    from m3t.fitting.imports import import_clip
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, settings = import_kw()
+    with pytest.raises(ClipRefused) as info:
+        import_clip(clip, "flame_params", cfx.flame_arrays(frames=3, exp=101), "k", settings)
+    assert info.value.group == "too many expression dims"
+    assert str(info.value) == "clip c7: 'exp' has 101 columns; FLAME 2020 has 100 expression coefficients"
+
+
+def test_an_imported_face_row_is_float32_and_reports_the_identitys_drift_over_frames():
+    from m3t.fitting.imports import import_clip
+
+    clip, settings = import_kw()
+    src = cfx.flame_arrays(frames=4)
+    src["shape"] = np.tile(np.linspace(-1, 1, 100, dtype=np.float32), (4, 1))  # one signer: the same every frame
+    src["eyelids"] = np.full((4, 2), 0.25, np.float32)
+    fitted, _ = import_clip(clip, "flame_params", src, "k", settings)
+    assert fitted.metrics["src_shape_frame_std"] == 0.0
+    assert fitted.params["face"].dtype == np.float32 and fitted.identity.dtype == np.float32
+    np.testing.assert_array_equal(fitted.params["face"][:, 100:102], 0.25)
+    np.testing.assert_allclose(fitted.identity[10:], src["shape"][0], atol=1e-7)
+    assert not fitted.identity[:10].any()  # no SMPL-X betas in a FLAME source
+    src["shape"][:, 0] = (0.0, 1.0, 0.0, 1.0)  # one coefficient drifts: std 0.5 over frames, mean over 100 dims
+    drifting, _ = import_clip(clip, "flame_params", src, "k", settings)
+    assert drifting.metrics["src_shape_frame_std"] == pytest.approx(0.005)
+
+
+def test_run_statistics_count_this_runs_work_and_its_throughput():
+    from m3t.fitting.report import run_stats
+
+    outcomes = [ClipOutcome("a", "train", "fitted", frames=30, seconds=2.0),
+                ClipOutcome("b", "dev", "fitted", frames=10, seconds=2.0),
+                ClipOutcome("c", "train", "cached", frames=50),
+                ClipOutcome("d", "test", "quarantined", seconds=1.0)]
+    assert run_stats(outcomes, 8.0) == {"clips_fitted_now": 2, "clips_cached": 1, "wall_seconds": 8.0,
+                                        "fit_frames_per_s_per_worker": 10.0, "fit_frames_per_s_wall": 5.0}
+    resumed = run_stats(outcomes[2:], 3.0)  # nothing fitted now: no throughput to report
+    assert (resumed["clips_fitted_now"], resumed["clips_cached"], resumed["wall_seconds"]) == (0, 1, 3.0)
+    assert math.isnan(resumed["fit_frames_per_s_per_worker"]) and math.isnan(resumed["fit_frames_per_s_wall"])
+    unclocked = run_stats(outcomes, 0.0)
+    assert math.isnan(unclocked["fit_frames_per_s_wall"]) and unclocked["fit_frames_per_s_per_worker"] == 10.0
+
+
+def test_an_imported_clip_without_a_non_finite_count_counts_as_all_finite():
+    from m3t.fitting.report import import_summary
+
+    imported = {"init_source": "imported: MEAD FLAME parameters, no tracking or fitting"}
+    summary = import_summary([ClipOutcome("i1", "train", "fitted", frames=10, init=imported,
+                                          metrics={"src_nonfinite_frame_frac": 0.1}),
+                              ClipOutcome("i2", "train", "cached", frames=30, init=imported, metrics={})])
+    assert summary == {"imported_clips": 2, "imported_nonfinite_frame_frac": pytest.approx(0.025)}
+
+
+def test_the_quality_picture_is_a_small_png_written_where_asked(tmp_path):
+    from m3t.fitting.quality import plot_quality, quality_report
+
+    report = quality_report([ClipOutcome("a", "train", "fitted", frames=3, metrics={"reproj_px_parts": 2.5},
+                                         coverage={"missing_left_hand": 0.5, "missing_right_hand": 0.0,
+                                                   "missing_face": 0.0}, track_frames=3)], "synthetic")
+    path = plot_quality(report, tmp_path / "render" / "quality-synthetic.png")
+    assert path == tmp_path / "render" / "quality-synthetic.png"
+    header = path.read_bytes()[:24]
+    assert header[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
+    assert (width, height) == (800, 320)  # 10 x 4 inches at 80 dpi: light enough for every run's artifacts

@@ -1,4 +1,10 @@
-"""DTW-JPE / DTW-PA-JPE against a brute-force reference (plain loops, numpy SVD per frame pair, full DP table)."""
+"""DTW-JPE / DTW-PA-JPE against a brute-force reference (plain loops, numpy SVD per frame pair, full DP table).
+
+Also, written to pin behaviours that mutation testing found unchecked: shape checks naming both shapes, the
+quaternion solver's SVD fallback (collinear sets at any scale, never for generic ones, lines onto themselves
+exactly), codebook statistics of an empty token set, the native kernels' float64 inputs and integer paths, and
+SOKE's body keypoint layout (iBUG landmark names, the SMPL-X vertex check).
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -305,3 +311,167 @@ def test_zero_weights_drop_points_and_negative_or_all_zero_weights_are_refused()
     for bad in (torch.tensor([1.0, 1, 1, 1, 1, -0.1], dtype=torch.float64), torch.zeros(6, dtype=torch.float64)):
         with pytest.raises(ValueError, match="non-negative with a positive sum"):
             similarity_transform(source, target, weights=bad)
+
+
+# ---------------------------------------------------------------- input checks, degenerate frames, fast path
+
+
+def test_pa_distance_matrix_names_both_shapes_when_they_do_not_pair():
+    for pred, gt in (((4, 5, 3), (6, 4, 3)), ((4, 5, 2), (6, 5, 2)), ((5, 3), (6, 5, 3))):
+        with pytest.raises(ValueError) as err:
+            pa_distance_matrix(torch.zeros(pred, dtype=torch.float64), torch.zeros(gt, dtype=torch.float64))
+        assert str(err.value) == f"pred {pred} and gt {gt} must be (T1, K, 3) and (T2, K, 3)"
+
+
+def test_batched_pa_distance_matrices_refuse_pairs_that_do_not_match():
+    from m3t.metrics.procrustes import pa_distance_matrices
+
+    z = torch.zeros
+    for pred, gt in (((2, 4, 5, 3), (3, 6, 5, 3)), ((2, 4, 5, 3), (2, 6, 4, 3)), ((2, 4, 5, 2), (2, 6, 5, 2)),
+                     ((4, 5, 3), (6, 5, 3))):
+        with pytest.raises(ValueError) as err:
+            pa_distance_matrices(z(pred, dtype=torch.float64), z(gt, dtype=torch.float64))
+        assert str(err.value) == f"pred {pred} and gt {gt} must be (B, T1, K, 3) and (B, T2, K, 3)"
+    rng = np.random.default_rng(11)
+    pred, gt = np.stack([motion(rng, 3, 6) for _ in range(2)]), np.stack([motion(rng, 4, 6) for _ in range(2)])
+    both = pa_distance_matrices(T(pred), T(gt)).numpy()
+    for b in range(2):
+        np.testing.assert_allclose(both[b], [[ref_pa(p, g) for g in gt[b]] for p in pred[b]], atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("size", [1.0, 0.01, 1000.0])
+def test_quaternion_solver_falls_back_on_collinear_points_at_any_scale(size):
+    """Body parts are centimetres to metres (or millimetres, in other units): a collinear (finger-like) set of small
+    extent is ill-conditioned as much as a long one, and must be re-solved like it."""
+    rng = np.random.default_rng(12)
+    direction = rng.normal(size=(300, 1, 3))
+    x = size * np.linspace(-0.5, 0.5, 8)[None, :, None] * direction + size * rng.normal(size=(300, 1, 3))
+    y = size * rng.normal(size=(300, 8, 3))
+    y[:100] = x[:100]  # onto itself: a double top root
+    fast, slow = similarity_align(T(x), T(y), "quaternion"), similarity_align(T(x), T(y), "svd")
+    np.testing.assert_allclose(fast.numpy(), slow.numpy(), atol=1e-6 * size, rtol=0)
+    np.testing.assert_allclose(fast[:100].numpy(), x[:100], atol=1e-6 * size, rtol=0)
+    np.testing.assert_allclose(fast[150].numpy(), ref_align(x[150], y[150]), atol=1e-6 * size, rtol=0)
+
+
+def test_quaternion_solver_solves_well_conditioned_frames_without_the_svd(monkeypatch):
+    """The SVD is the slow fallback (5x or worse on CPU): generic point sets never reach it, in metres or in
+    millimetres; collinear ones do."""
+    from m3t.metrics import procrustes
+
+    solved = []
+    svd = procrustes._rotation_svd
+
+    def counting(cov):
+        solved.append(cov.shape[:-2].numel())
+        return svd(cov)
+
+    monkeypatch.setattr(procrustes, "_rotation_svd", counting)
+    rng = np.random.default_rng(13)
+    pred, gt = motion(rng, 9, 12), motion(rng, 7, 12)
+    pa = pa_distance_matrix(T(pred), T(gt)).numpy()
+    moved = similarity_copy(pred, rng)
+    np.testing.assert_allclose(pa_distance_matrix(T(moved), T(pred)).numpy().diagonal(), 0.0, atol=1e-9)
+    np.testing.assert_allclose(pa_distance_matrix(T(1000 * pred), T(1000 * gt)).numpy(), 1000 * pa, atol=1e-7, rtol=0)
+    assert solved == []
+    np.testing.assert_allclose(pa, [[ref_pa(p, g) for g in gt] for p in pred], atol=1e-10, rtol=0)
+    line = np.linspace(0, 1, 12)[:, None] * np.array([0.1, 0.2, 0.3])
+    pa_distance_matrix(T(np.stack([line, pred[0]])), T(np.stack([line, gt[0]])))
+    assert sum(solved) >= 1  # the line onto itself
+
+
+# ---------------------------------------------------------------- codebook statistics
+
+
+def test_codebook_stats_of_no_tokens_are_all_zero_and_of_uniform_use_are_the_codebook_size():
+    from m3t.metrics.codebook import codebook_stats, token_counts
+
+    assert codebook_stats(np.zeros(8, dtype=np.int64)) == {"utilisation_pct": 0.0, "count_sd": 0.0,
+                                                           "perplexity": 0.0, "tokens": 0.0}
+    stats = codebook_stats(token_counts([np.array([0, 1, 1, 3]), np.array([[3, 3], [1, 0]])], 4))
+    assert stats["utilisation_pct"] == 75.0 and stats["tokens"] == 8.0
+    assert stats["count_sd"] == pytest.approx(np.std([2, 3, 0, 3]))
+    probs = np.array([2, 3, 3]) / 8
+    assert stats["perplexity"] == pytest.approx(np.exp(-(probs * np.log(probs)).sum()))
+    with pytest.raises(ValueError, match=r"token index out of range \[0, 4\): \[0, 4\]"):
+        token_counts([np.array([0, 4])], 4)
+
+
+# ---------------------------------------------------------------- native kernels: inputs and paths
+
+
+def test_kernels_read_float32_points_as_float64():
+    """float32 input (tensors from a model) is widened before any arithmetic, so the costs equal those of the
+    same values given as float64 (root-relative differences of far-apart float32 points are not float32-exact)."""
+    from m3t.metrics import kernels
+
+    rng = np.random.default_rng(14)
+    pred = (motion(rng, 5, 6) + np.array([100.0, -50.0, 3.0])).astype(np.float32)
+    pred[:, 0] = np.array([0.001, 250.0, -0.3], dtype=np.float32)  # the root far from the other points
+    gt = motion(rng, 4, 6)
+    wide = pred.astype(np.float64)
+    np.testing.assert_array_equal(kernels.jpe_cost_matrix(pred, gt), kernels.jpe_cost_matrix(wide, gt))
+    np.testing.assert_array_equal(kernels.pa_cost_matrix(pred, gt), kernels.pa_cost_matrix(wide, gt))
+    jobs = [kernels.CostJob(pred, gt, False), kernels.CostJob(wide, gt, False)]
+    narrow, double = kernels.dtw_jobs(jobs, threads=1)
+    assert narrow.cost_raw == double.cost_raw
+
+
+def test_kernel_dtw_paths_are_integer_indices_into_the_cost_matrix():
+    from m3t.metrics import kernels
+
+    rng = np.random.default_rng(15)
+    costs = [rng.random((5, 3)), rng.random((1, 4)), rng.random((6, 6))]
+    for cost, res in zip(costs, kernels.dtw_costs(costs, threads=1), strict=True):
+        assert res.path.dtype == np.int64 and res.path.shape == (res.path_length, 2)
+        assert cost[res.path[:, 0], res.path[:, 1]].sum() == pytest.approx(res.cost_raw, abs=1e-12)
+        assert tuple(res.path[0]) == (0, 0) and tuple(res.path[-1]) == (cost.shape[0] - 1, cost.shape[1] - 1)
+
+
+# ---------------------------------------------------------------- SOKE's keypoint layout
+
+
+def test_soke_keypoints_name_the_face_landmarks_by_their_ibug_numbers(fx):
+    from m3t.metrics.soke import soke_keypoints
+
+    body = soke_keypoints(fx)["body"]
+    landmarks = [n for n in body.names if n.startswith("ibug_")]
+    assert landmarks == [f"ibug_{k}" for k in range(18, 69)]  # iBUG 18-68: 51 static landmarks
+    assert body.names[-51:] == tuple(landmarks)
+    np.testing.assert_array_equal(body.index[-51:], fx.data.landmark_vertices)
+    assert (body.kind[-51:] == 0).all() and body.kind.dtype == np.int64 and body.index.dtype == np.int64
+
+
+def test_soke_keypoints_refuse_a_model_without_smplx_vertex_ids(fx):
+    """A SMPL-FX built from a smaller SMPL-X mesh than v1.1's lacks the vertices SOKE's points sit on (here its
+    landmark correspondence still resolves, so the check of SOKE's own vertex points is the one that speaks)."""
+    import copy
+    import dataclasses
+
+    from m3t.metrics.soke import SokeModeError, soke_keypoints
+
+    small = copy.copy(fx)
+    small.data = dataclasses.replace(fx.data, num_smplx_vertices=9929)
+    small.correspondence = fx.correspondence
+    with pytest.raises(SokeModeError) as err:
+        soke_keypoints(small)
+    assert str(err.value) == ("SMPL-X vertex points ['reye'] lie beyond the model's 9929 SMPL-X "
+                              "vertices; build SMPL-FX from SMPLX_NEUTRAL.npz of the SMPL-X v1.1 download")
+
+
+def test_collinear_frames_align_onto_themselves_exactly_in_both_solvers():
+    """A line onto itself has a double top root; Newton could stall just below it with a tiny quartic residual and
+    the right eigenvector, and the scale then came out up to 2e-5 off (torch) or the PA cost ~1e-7 (kernel).
+    The eigenvector's Rayleigh quotient exposes the stall, and such frames go to the fallback solver."""
+    from m3t.metrics import kernels
+
+    rng = np.random.default_rng(16)
+    for points in (8, 21):
+        line = (np.linspace(-0.5, 0.5, points)[None, :, None] * rng.normal(size=(120, 1, 3))
+                + rng.normal(size=(120, 1, 3)))
+        np.testing.assert_allclose(similarity_align(T(line), T(line)).numpy(), line, atol=1e-12, rtol=0)
+        np.testing.assert_allclose(pa_distance_matrix(T(line), T(line)).numpy().diagonal(), 0.0, atol=1e-12)
+        np.testing.assert_allclose(kernels.pa_cost_matrix(line, line).diagonal(), 0.0, atol=1e-12)
+        # ... and the cost between different lines is the SVD's
+        np.testing.assert_allclose(kernels.pa_cost_matrix(line[:6], line[6:12]),
+                                   [[ref_pa(p, g) for g in line[6:12]] for p in line[:6]], atol=1e-9, rtol=0)

@@ -1,8 +1,11 @@
 """Behaviour details of the tokenizers, the SMLM and the codebook metrics that the coarser tests do not pin down:
 the tokenisation stage end to end on a tiny shard (token values, rejected clips, summaries, reruns, every
-corpus), the SMLM evaluator's batching, progress output and decoding, the training step's defaults (no
-clipping unless asked, the batch's masks reach the model), the window sampler's equal DDP shares, the
-tokenizer's normalisation floor and mirrored decoder, region keypoints, and the codebook histogram's bars.
+corpus), the SMLM evaluator's batching, progress output, decoding and scoring, the training step's defaults
+(no clipping unless asked, the batch's masks reach the model), the clips a token shard cannot give as examples
+(and why), the reduced mBART embedding and text tokenizers (specials, id mapping, errors naming the tokenizer),
+the training loops' progress bars, the window sampler's equal DDP shares and whole-frame crops, stream groups
+and layout checks, tokenizer checkpoints, the tokenizer's normalisation (floor, mapping back) and mirrored
+decoder, the VQ quantiser's settings, region keypoints, and the codebook histogram's bars.
 Written to pin behaviours that mutation testing of the library found unchecked. Tiny untrained models only.
 
 The fitted shards here are the project's own Parquet format (:mod:`m3t.shards.io`) over a small hand-made
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 
 import numpy as np
 import pytest
@@ -463,3 +467,508 @@ def test_token_histogram_draws_one_unit_bar_per_code_and_its_rank_order(tmp_path
     assert title.startswith("face (fsq, 5 codes)") and "60.0% used" in title and f"{np.std(counts):.1f}" in title
     monkeypatch.undo()
     plt.close(fig)
+
+
+# ---------------------------------------------------------------- SMLM examples, evaluator generation and scoring
+
+
+def _token_clip(cid: str, language: str, text: str, steps: int, split: str = "dev", streams=None, seed: int = 0):
+    from m3t.shards.tokens import TokenClip
+
+    rng = np.random.default_rng(seed)
+    tokens = {s: rng.integers(0, CODEBOOKS[s], steps) for s in (streams or CODEBOOKS)}
+    return TokenClip(Clip(cid, "synthetic", split, language, "s1", text, "G", f"{cid}.npz", 25.0), 4 * steps, tokens)
+
+
+def test_examples_from_shard_skips_or_cuts_each_unusable_clip_and_says_why(smlm_parts):
+    from pathlib import Path
+
+    from m3t.shards.tokens import TokenShard
+    from m3t.smlm.data import examples_from_shard
+    from m3t.smlm.vocab import MOTION_STREAMS
+
+    _, vocab, _ = smlm_parts
+    long_text, short_text = SENTENCES["ASL"][0], SENTENCES["ASL"][2]
+    n_long, n_short = len(vocab.encode_text(long_text, None)), len(vocab.encode_text(short_text, None))
+    limit_text, limit_motion = n_short, 10
+    assert n_long > limit_text
+    clips = (
+        _token_clip("ok", "ASL", short_text, 4, seed=1),
+        _token_clip("dgs-1", "DGS", short_text, 4, seed=2),  # a language the vocabulary was not built for
+        _token_clip("empty", "CSL", SENTENCES["CSL"][0], 0, split="test", seed=3),
+        _token_clip("long", "ASL", long_text, 12, seed=4),  # both limits
+        _token_clip("faceless", "ASL", short_text, 4, streams=["body", "left_hand", "right_hand"], seed=5),
+        _token_clip("long-motion", "CSL", SENTENCES["CSL"][0], 11, seed=6),  # the motion limit only
+    )
+    shard = TokenShard(Path("dev.parquet"), TokenInfo(CODEBOOKS, 4, {}), clips)
+    both = (f"text of {n_long} tokens > smlm.max_text_tokens = {limit_text}; "
+            f"12 motion steps > smlm.max_motion_tokens = {limit_motion}")
+    motion_only = f"11 motion steps > smlm.max_motion_tokens = {limit_motion}"
+    unusable = [
+        {"clip_id": "dgs-1", "split": "dev",
+         "reason": "unknown language 'DGS'; this vocabulary knows ['ASL', 'CSL'] "
+                   "(languages come from the training corpus)"},
+        {"clip_id": "empty", "split": "test", "reason": "no motion tokens"},
+    ]
+    faceless = {"clip_id": "faceless", "split": "dev", "reason": "'face'"}
+
+    # training: a clip over either limit is skipped with the limits it breaks
+    examples, skipped = examples_from_shard(shard, vocab, limit_text, limit_motion)
+    assert [e.clip_id for e in examples] == ["ok"]
+    assert skipped == [unusable[0], unusable[1], {"clip_id": "long", "split": "dev", "reason": both}, faceless,
+                       {"clip_id": "long-motion", "split": "dev", "reason": motion_only}]
+
+    # evaluation: such a clip is kept, cut to the limits, and listed in ``cut``
+    cut: list[dict[str, str]] = []
+    examples, skipped = examples_from_shard(shard, vocab, limit_text, limit_motion, cut)
+    assert skipped == [*unusable, faceless]
+    assert cut == [{"clip_id": "long", "split": "dev", "reason": both + " (kept, cut to the limit)"},
+                   {"clip_id": "long-motion", "split": "dev", "reason": motion_only + " (kept, cut to the limit)"}]
+    by_id = {e.clip_id: e for e in examples}
+    assert list(by_id) == ["ok", "long", "long-motion"]
+    for tc in (clips[0], clips[3], clips[5]):
+        e = by_id[tc.clip.id]
+        assert (e.language, e.text) == (tc.clip.language, tc.clip.text)
+        assert e.text_ids.dtype == np.int64
+        assert e.text_ids.tolist() == vocab.encode_text(tc.clip.text, None)[:limit_text]
+        steps = min(tc.num_tokens, limit_motion)
+        assert e.motion.dtype == np.int64 and e.motion.shape == (steps, len(MOTION_STREAMS))
+        for k, stream in enumerate(MOTION_STREAMS):  # columns in stream order, whatever the shard's order
+            assert e.motion[:, k].tolist() == tc.tokens[stream][:steps].tolist(), (tc.clip.id, stream)
+
+
+def test_evaluator_generates_every_clip_in_batches_and_shows_progress_only_when_asked(evaluator, smlm_parts, capfd):
+    from m3t.smlm.generate import generate_motion
+
+    torch.set_num_threads(1)
+    model, vocab, examples = smlm_parts
+    capfd.readouterr()
+    generated = evaluator.generate(model)
+    assert "generate" not in capfd.readouterr().err, "no progress bar unless asked"
+    assert list(generated) == [e.clip_id for e in examples]
+    for start in (0, 3):  # batches of 3: [0, 1, 2] and [3]
+        chunk = examples[start: start + 3]
+        expected = generate_motion(model, vocab, [e.text for e in chunk], [e.language for e in chunk],
+                                   truncate_text=True)
+        for e, want in zip(chunk, expected):
+            got = generated[e.clip_id]
+            assert got.stopped == want.stopped and list(got.tokens) == list(want.tokens)
+            for stream in want.tokens:
+                assert np.array_equal(got.tokens[stream], want.tokens[stream]), (e.clip_id, stream)
+    again = evaluator.generate(model, progress=True)
+    err = capfd.readouterr().err
+    assert "generate" in err and "4/4" in err
+    assert all(np.array_equal(again[c].tokens["body"], generated[c].tokens["body"]) for c in generated)
+
+
+def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evaluator, smlm_parts, monkeypatch):
+    """The evaluator's part of scoring: what it hands the motion scorer (decoded predictions, the rest pose for an
+    empty one, groups, identities) and the rows and summary it builds from the scores (the scorer's own numbers
+    are pinned in test_scorer.py; here a recording stand-in returns known ones)."""
+    from m3t.metrics.scorer import ClipScore, MotionScores
+    from m3t.metrics.text import translation_metrics_by_language
+    from m3t.smlm.evaluate import SELECTION_METRIC
+    from m3t.smlm.generate import GeneratedMotion
+    from m3t.smlm.vocab import MOTION_STREAMS
+
+    class RecordingScorer:
+        def __init__(self):
+            self.calls = []
+
+        def score(self, pairs):
+            self.calls.append(list(pairs))
+            per_clip = [ClipScore(p.clip_id, p.group, len(next(iter(p.prediction.values()), [])),
+                                  {"dtw_jpe_body_m": 0.1 * (k + 1), "dtw_jpe_hand_m": 0.02 * (k + 1)})
+                        for k, p in enumerate(pairs)]
+            if not pairs:
+                return MotionScores([], {}, {}, 0.0)
+            overall = {"dtw_jpe_body_m": 0.25, "dtw_jpe_hand_m": 0.05}
+            groups = {"synthetic/ASL": {"dtw_jpe_body_m": 0.2}, "synthetic/CSL": {"dtw_jpe_body_m": 0.4}}
+            return MotionScores(per_clip, overall, groups, 0.25)
+
+    torch.set_num_threads(1)
+    _, _, examples = smlm_parts
+    scorer = RecordingScorer()
+    monkeypatch.setattr(evaluator, "scorer", scorer)
+    steps = {"ASL0": 3, "ASL1": 0, "ASL2": 2, "CSL0": 1}  # ASL1: EOS at the first step, an empty prediction
+    stopped = {"ASL0": True, "ASL1": True, "ASL2": False, "CSL0": False}
+    rng = np.random.default_rng(3)
+    generated = {cid: GeneratedMotion({s: rng.integers(0, CODEBOOKS[s], n) for s in MOTION_STREAMS}, stopped[cid])
+                 for cid, n in steps.items()}
+    translations = {"ASL0": "the friend buys a car", "ASL1": "", "ASL2": "the child reads", "CSL0": "我 的 朋友"}
+    report = evaluator.score(generated, translations)
+
+    (pairs,) = scorer.calls
+    assert [p.clip_id for p in pairs] == [e.clip_id for e in examples]
+    assert [p.group for p in pairs] == ["synthetic/ASL"] * 3 + ["synthetic/CSL"]
+    for p in pairs:
+        ref = evaluator.references[p.clip_id]
+        assert p.identity is ref.identity and p.reference is None  # the stored reference points are used
+        if steps[p.clip_id] == 0:
+            assert p.prediction == {}, "an empty generation is scored as an empty prediction"
+            continue
+        expected = evaluator.motion_params(generated[p.clip_id])
+        assert sorted(p.prediction) == sorted(expected)
+        for k, v in expected.items():
+            assert v.shape[0] == 4 * steps[p.clip_id] and np.array_equal(p.prediction[k], v), (p.clip_id, k)
+
+    assert report.per_clip == [
+        {"clip_id": "ASL0", "group": "synthetic/ASL", "steps": 3, "stopped": 1.0, "dtw_jpe_body_m": 0.1,
+         "dtw_jpe_hand_m": 0.02},
+        {"clip_id": "ASL1", "group": "synthetic/ASL", "steps": 0, "stopped": 1.0, "dtw_jpe_body_m": 0.2,
+         "dtw_jpe_hand_m": 0.04},
+        {"clip_id": "ASL2", "group": "synthetic/ASL", "steps": 2, "stopped": 0.0, "dtw_jpe_body_m": pytest.approx(0.3),
+         "dtw_jpe_hand_m": 0.06},
+        {"clip_id": "CSL0", "group": "synthetic/CSL", "steps": 1, "stopped": 0.0, "dtw_jpe_body_m": 0.4,
+         "dtw_jpe_hand_m": 0.08},
+    ]
+    assert all(isinstance(r["stopped"], float) for r in report.per_clip)
+    text_metrics = translation_metrics_by_language([translations[e.clip_id] for e in examples],
+                                                   [e.text for e in examples], [e.language for e in examples])
+    assert report.summary == {
+        "dtw_jpe_body_m": 0.25, "dtw_jpe_hand_m": 0.05,
+        "stopped_rate": 0.5, "empty_rate": 0.25, "mean_steps": 1.5,
+        SELECTION_METRIC: pytest.approx(0.15),  # the mean of body and hand DTW-JPE
+        "synthetic/ASL/dtw_jpe_body_m": 0.2, "synthetic/CSL/dtw_jpe_body_m": 0.4,
+        **text_metrics,
+    }
+    assert report.generated is generated and report.translations == translations
+
+    # the remaining checks are about translations and lookups: a stand-in decoder keeps them quick
+    monkeypatch.setattr(evaluator, "motion_params", lambda g: {"body": np.zeros((4 * len(g.tokens["body"]), 1))})
+    without = evaluator.score(generated)  # no translations: motion only
+    assert without.translations == {} and not any(k.startswith("translation") for k in without.summary)
+
+    lost = {k: v for k, v in generated.items() if k != "CSL0"}
+    with pytest.raises(KeyError, match=r"no generated motion for clips \['CSL0'\] \(of 1\); rerun the generate stage"):
+        evaluator.score(lost)
+    with pytest.raises(KeyError, match=r"no translation for clips \['ASL1', 'ASL2'\] \(of 2\); rerun the generate"):
+        evaluator.score(generated, {"ASL0": "a", "CSL0": "b"})
+
+    monkeypatch.setattr(evaluator, "examples", [])  # no evaluation clip at all: rates of 0, never selected
+    nothing = evaluator.score({}, {})
+    assert nothing.per_clip == [] and scorer.calls[-1] == []
+    assert {k: v for k, v in nothing.summary.items() if not k.startswith("translation")} == {
+        "stopped_rate": 0.0, "empty_rate": 0.0, "mean_steps": 0.0, SELECTION_METRIC: float("inf")}
+
+
+# ---------------------------------------------------------------- SMLM: reduced embedding, text tokenizers
+
+
+def test_keeping_embedding_rows_gathers_them_and_leaves_the_pad_row_untrained():
+    """:func:`m3t.smlm.model.keep_embedding_rows` on an in-memory mBART (``MBartModel``: its scaled word
+    embedding shared by encoder and decoder, pad id 1 as in mbart-large-cc25)."""
+    from transformers import MBartConfig, MBartModel
+
+    from m3t.smlm.model import keep_embedding_rows
+
+    torch.manual_seed(0)
+    config = MBartConfig(vocab_size=20, d_model=8, encoder_layers=1, decoder_layers=1, encoder_attention_heads=2,
+                         decoder_attention_heads=2, encoder_ffn_dim=16, decoder_ffn_dim=16, max_position_embeddings=32,
+                         scale_embedding=True, pad_token_id=1)
+    backbone = MBartModel(config)
+    old = backbone.get_input_embeddings()
+    before = old.weight.detach().clone()
+    rows = (0, 1, 2, 3, 7, 11)
+    with pytest.raises(ValueError, match=r"pretrained id 20 but the checkpoint in models/mbart has 20 embedding rows: "
+                                         r"smlm\.text_model_path and smlm\.pretrained_path must be the same mBART"):
+        keep_embedding_rows(backbone, rows + (20,), 1, "models/mbart")
+    assert backbone.get_input_embeddings() is old, "a refused reduction leaves the model as it was"
+
+    keep_embedding_rows(backbone, rows, 1, "models/mbart")
+    emb = backbone.get_input_embeddings()
+    assert type(emb) is type(old) and emb.num_embeddings == len(rows) and emb.embedding_dim == 8
+    assert emb.embed_scale == old.embed_scale == pytest.approx(8 ** 0.5)
+    assert torch.equal(emb.weight, before[list(rows)])
+    assert backbone.encoder.embed_tokens is emb and backbone.decoder.embed_tokens is emb
+    assert backbone.config.vocab_size == len(rows) and backbone.config.pad_token_id == 1
+    assert emb.padding_idx == 1
+    ids = torch.tensor([[0, 4, 5, 2, 1, 1]])  # two pads at the end
+    out = backbone(input_ids=ids, attention_mask=(ids != 1).long(), decoder_input_ids=ids[:, :4])
+    out.last_hidden_state.sum().backward()
+    grad = emb.weight.grad
+    assert torch.count_nonzero(grad[1]) == 0, "the pad row gets no gradient: it stays the pretrained pad"
+    assert all(torch.count_nonzero(grad[i]) > 0 for i in (0, 2, 4, 5))
+
+
+def test_training_the_text_tokenizer_keeps_sentencepieces_log_off_stderr(capfd):
+    import sentencepiece as spm
+
+    from m3t.smlm.vocab import SentencePieceText, VocabularyError
+
+    spm.set_min_log_level(0)  # the library's default: an earlier training in this process may have raised it
+    capfd.readouterr()
+    text = SentencePieceText.train(["the friend buys a red car", "  ", "", "my father drinks water"], 40)
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == "", "the stage log stays readable: no trainer chatter"
+    assert (text.pad_id, text.bos_id, text.eos_id, text.unk_id) == (0, 1, 2, 3)
+    assert 4 < text.size <= 40  # vocab_size is an upper bound on a small corpus
+    ids = text.encode("my father drinks water")
+    assert text.decode([text.bos_id, *ids, text.eos_id, text.pad_id]) == "my father drinks water"
+    with pytest.raises(VocabularyError, match="the corpus has no non-empty text"):
+        SentencePieceText.train(["", "   "], 40)
+
+
+@pytest.fixture(scope="module")
+def mbart_tokenizer_dir(tmp_path_factory):
+    """The tokenizer files of a facebook/mbart-large-cc25 folder, tiny: a SentencePiece BPE
+    ``sentencepiece.bpe.model`` and a ``tokenizer_config.json`` naming ``MBartTokenizer`` (``transformers`` then
+    gives mBART's ids: ``<s>`` 0, ``<pad>`` 1, ``</s>`` 2, ``<unk>`` 3, the pieces shifted by one, then the 25
+    language codes ``ar_AR`` .. ``zh_CN`` and ``<mask>``), as the stand-in of test_smlm_reduced_vocab.py, without
+    the model weights."""
+    import io
+
+    import sentencepiece as spm
+
+    folder = tmp_path_factory.mktemp("mbart-tokenizer")
+    texts = ["the friend buys a red car today", "morgen regnet es im norden", "zwölf grad in bayern",
+             "cars and books", "am tag scheint die sonne"]
+    buffer = io.BytesIO()
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(texts * 4), model_writer=buffer, vocab_size=60,
+                                   model_type="bpe", hard_vocab_limit=False, minloglevel=2, num_threads=1)
+    (folder / "sentencepiece.bpe.model").write_bytes(buffer.getvalue())
+    (folder / "tokenizer_config.json").write_text(json.dumps({"tokenizer_class": "MBartTokenizer"}))
+    return folder
+
+
+def test_pretrained_mbart_text_decodes_without_its_special_tokens(mbart_tokenizer_dir):
+    from m3t.smlm.vocab import PretrainedMBartText
+
+    text = PretrainedMBartText(mbart_tokenizer_dir)
+    assert (text.bos_id, text.pad_id, text.eos_id, text.unk_id) == (0, 1, 2, 3)
+    assert text.path == str(mbart_tokenizer_dir) and text.model_proto == b""
+    ids = text.encode("the friend buys a red car")
+    assert ids and min(ids) > 3, "encoded without <s> / </s>"
+    assert text.piece(text.eos_id) == "</s>" and text.piece(text.pad_id) == "<pad>"
+    generated = [text.bos_id, *ids, text.eos_id, text.pad_id, text.pad_id]  # as a padded generation comes back
+    assert text.decode(generated) == "the friend buys a red car"
+    assert text.decode(np.array(generated, dtype=np.int64)) == "the friend buys a red car"
+
+
+def test_reduced_text_refuses_ids_outside_the_tokenizer_and_names_it(mbart_tokenizer_dir):
+    from m3t.smlm.vocab import PretrainedMBartText, ReducedText, VocabularyError
+
+    base = PretrainedMBartText(mbart_tokenizer_dir)
+    last = base.size - 1
+
+    def message(kept):
+        with pytest.raises(VocabularyError) as info:
+            ReducedText(base, kept)
+        return str(info.value)
+
+    for kept, shown in (([-1, 0, 1, 2, 3], "5 ids from (-1,) to (3,)"),  # a negative id
+                        ([0, 1, 2, 3, base.size], f"5 ids from (0,) to ({base.size},)"),  # one past the end
+                        ([0, 2, 1, 3], "4 ids from (0,) to (3,)"),  # not ascending
+                        ([0, 1, 2, 2, 3], "5 ids from (0,) to (3,)"),  # a repeat
+                        ([], "0 ids from () to ()")):
+        assert message(kept) == (
+            f"the reduced text vocabulary must list ascending, distinct ids of the tokenizer in {mbart_tokenizer_dir} "
+            f"(0 .. {last}); got {shown}: the checkpoint was made with another mBART tokenizer"), kept
+    assert message([0, 2, 3, 9]) == "the reduced text vocabulary lacks the special token(s) ['pad']"
+    assert message([1, 3, 9]) == "the reduced text vocabulary lacks the special token(s) ['bos', 'eos']"
+
+    reduced = ReducedText.from_texts(base, ["the friend buys a red car", "", "  "])
+    assert reduced.kept[:4] == (0, 1, 2, 3) and reduced.kept[-1] <= last
+    assert (reduced.bos_id, reduced.pad_id, reduced.eos_id, reduced.unk_id) == (0, 1, 2, 3)
+    ids = reduced.encode("the friend buys a red car")
+    assert max(ids) < reduced.size and reduced.decode(ids) == "the friend buys a red car"
+    with pytest.raises(VocabularyError, match="the training corpus has no non-empty text"):
+        ReducedText.from_texts(base, ["", " "])
+
+
+def test_reduced_text_decodes_every_id_in_range_through_the_mapping_and_drops_the_others():
+    """Reduced id ``i`` is pretrained id ``kept[i]``, the first one included; ids outside the reduced
+    vocabulary (a generation's stray values) are dropped. The base here is a tokenizer whose first ids are
+    ordinary pieces (its specials at 4 .. 7), so that a lost id 0 shows."""
+    from m3t.smlm.vocab import ReducedText
+
+    class Pieces:
+        path, size, model_proto = "pieces", 10, b""
+        pad_id, bos_id, eos_id, unk_id = 4, 5, 6, 7
+
+        def decode(self, ids):
+            return " ".join(f"p{i}" for i in ids)
+
+        def piece(self, i):
+            return f"p{i}"
+
+    reduced = ReducedText(Pieces(), [0, 2, 4, 5, 6, 7, 9])
+    assert reduced.size == 7 and (reduced.pad_id, reduced.bos_id, reduced.eos_id, reduced.unk_id) == (2, 3, 4, 5)
+    assert reduced.decode([0, 1, 6]) == "p0 p2 p9"
+    assert reduced.decode([0, 7, -1, 1, 99, 6]) == "p0 p2 p9"
+    assert reduced.decode(np.array([6, 0])) == "p9 p0"
+    assert [reduced.piece(i) for i in (0, 1, 6)] == ["p0", "p2", "p9"]
+
+
+# ---------------------------------------------------------------- tokenizers: streams, layouts, sampling, checkpoints
+
+
+def test_every_stream_belongs_to_one_group_and_an_unknown_stream_is_named():
+    from m3t.tokenizers.data import group_of
+
+    assert {s.name: group_of(s.name) for s in STREAMS} == {
+        "body": "body", "left_hand": "hand", "right_hand": "hand", "face": "face"}
+    with pytest.raises(KeyError) as info:
+        group_of("torso")
+    assert info.value.args[0] == ("no tokenizer group serves stream 'torso'; streams: "
+                                  "['body', 'left_hand', 'right_hand', 'face']")
+
+
+def test_check_layout_gives_the_groups_dim_or_says_what_the_body_model_lacks():
+    from m3t.tokenizers.data import check_layout
+
+    assert {g: check_layout(LAYOUT, g) for g in GROUPS} == {"body": 12, "hand": 6, "face": 3}
+
+    def message(layout, group):
+        with pytest.raises(ValueError) as info:
+            check_layout(layout, group)
+        return str(info.value)
+
+    assert message(NO_FACE, "face") == ("tokenizer group 'face' needs modality 'face'; the body model's layout has "
+                                        "['body', 'left_hand', 'right_hand']")
+    assert message(LAYOUT, "torso") == "tokenizer group 'torso' unknown; allowed: body, hand, face"
+    body, _, right, face = LAYOUT.modalities
+    two_bone_left = Modality("left_hand", "rotation6d", ("wrist.L", "thumb.L"), mirror_of="right_hand")
+    assert message(ModalityLayout((body, two_bone_left, right, face), ()), "hand") == (
+        "streams of group 'hand' have different dims [6, 12]")
+    scalar_left = Modality("left_hand", "scalar", ("a", "b", "c", "d", "e", "f"))
+    assert message(ModalityLayout((body, scalar_left, right, face), ()), "hand") == (
+        "modality 'left_hand' must be rotation6d to be mirrored")
+
+
+def test_random_crops_are_whole_start_frames_inside_each_sequence_and_replayable():
+    lengths = (5, 16, 17, 40)
+    seqs = [np.zeros((n, 2), np.float32) for n in lengths]
+    sampler = WindowSampler(seqs, window=8, batch_size=3, per_sequence=3, seed=11)
+    items, starts = sampler.crops(0)
+    assert items.shape == starts.shape == (3 * len(seqs),)
+    assert np.issubdtype(starts.dtype, np.integer), "start frames index the sequence"
+    assert sorted(items.tolist()) == sorted(list(range(len(seqs))) * 3)
+    for item, start in zip(items, starts):
+        assert 0 <= start <= max(lengths[item] - 8, 0), (item, start)
+        assert len(seqs[item][start: start + 8]) == min(8, lengths[item])
+    again_items, again_starts = sampler.crops(0)
+    assert np.array_equal(again_items, items) and np.array_equal(again_starts, starts), "an epoch replays exactly"
+    other = sampler.crops(1)
+    assert not (np.array_equal(other[0], items) and np.array_equal(other[1], starts))
+    assert (starts[items == 3] != starts[items == 3][0]).any(), "crops of a long sequence start anywhere"
+
+
+def test_tokenizer_checkpoint_keeps_its_metrics_and_training_state(tmp_path):
+    from m3t.tokenizers.checkpoint import load_tokenizer
+
+    model = tiny_tokenizers()["face"]
+    state = {"epoch": 4, "history": [{"epoch": 4, "train_loss": 0.5}]}
+    save_tokenizer(tmp_path / "face.last.pt", model, "face", 4, 40, "data-v2", {"val_vpe_mm": 3.5, "epoch": 4}, state)
+    loaded = load_tokenizer(tmp_path / "face.last.pt")
+    assert (loaded.group, loaded.epoch, loaded.step, loaded.data_version) == ("face", 4, 40, "data-v2")
+    assert loaded.metrics == {"val_vpe_mm": 3.5, "epoch": 4} and isinstance(loaded.metrics, dict)
+    assert loaded.train_state == state
+    assert torch.equal(loaded.model.mean, model.mean) and torch.equal(loaded.model.std, model.std)
+    assert not loaded.model.training
+    save_tokenizer(tmp_path / "face.pt", model, "face", 4, 40, "data-v2", {})
+    best = load_tokenizer(tmp_path / "face.pt")
+    assert best.metrics == {} and best.train_state is None  # only the resumable checkpoint carries a state
+
+
+def test_decoded_parameters_are_the_decoders_output_mapped_back_by_the_training_statistics():
+    torch.manual_seed(0)
+    model = MotionTokenizer(VAEConfig(input_dim=4, levels=(5, 5, 4), width=8, depth=1)).eval()
+    mean, std = torch.tensor([1.0, -2.0, 0.5, 30.0]), torch.tensor([0.5, 2.0, 1.0, 4.0])
+    model.set_normalisation(mean, std)
+    indices = torch.tensor([[0, 17, 99]])
+    codes = model.quantizer.indices_to_codes(indices)
+    raw = model.decoder(codes.transpose(1, 2)).transpose(1, 2)  # the decoder works in standardised units
+    decoded = model.decode(indices)
+    assert decoded.shape == (1, 12, 4)
+    assert torch.allclose(decoded, raw * std + mean, atol=1e-6)
+    assert torch.allclose(model.decode_codes(codes), decoded)
+    # the encoder sees the same standardisation: parameters shifted and scaled with the statistics encode alike
+    x = torch.randn(1, 8, 4)
+    plain = MotionTokenizer(model.cfg).eval()
+    plain.load_state_dict({**model.state_dict(), "mean": torch.zeros(4), "std": torch.ones(4)})
+    assert torch.allclose(model.encode_latents(x * std + mean), plain.encode_latents(x), atol=1e-5)
+
+
+def test_vq_tokenizer_uses_the_configured_commitment_weight_and_ema_decay():
+    cfg = VAEConfig(input_dim=3, levels=(2, 3), quantizer="vq", width=8, depth=1, vq_code_dim=4, vq_decay=0.5,
+                    vq_beta=0.3)
+    torch.manual_seed(1)
+    model = MotionTokenizer(cfg)
+    vq = model.quantizer
+    assert (vq.codebook_size, vq.dim) == (6, 4) and model.codebook_size == 6
+    codebook = torch.randn(6, 4)
+    vq.codebook.copy_(codebook)
+    vq.ema_sum.copy_(10.0 * codebook)
+    vq.ema_count.fill_(10.0)  # well above the reset threshold: no code is reset by one update
+    vq.initialised.fill_(True)
+    x = torch.randn(2, 8, 3)
+
+    model.eval()
+    out = model(x)
+    flat = out.latents.detach().reshape(-1, 4)
+    expected = torch.cdist(flat, codebook).argmin(dim=1)
+    assert torch.equal(out.indices.reshape(-1), expected)
+    assert out.quant_loss.item() == pytest.approx(0.3 * ((flat - codebook[expected]) ** 2).mean().item(), rel=1e-5)
+    assert torch.equal(vq.codebook, codebook), "no codebook update outside training"
+
+    model.train()
+    out = model(x)
+    counts = torch.bincount(out.indices.reshape(-1), minlength=6).float()
+    sums = torch.zeros(6, 4).index_add_(0, out.indices.reshape(-1), out.latents.reshape(-1, 4).detach())
+    assert torch.allclose(vq.ema_count, 0.5 * 10.0 + 0.5 * counts)
+    assert torch.allclose(vq.codebook, (0.5 * 10.0 * codebook + 0.5 * sums) / vq.ema_count[:, None], atol=1e-6)
+    assert vq.last_resets == 0
+
+
+# ---------------------------------------------------------------- progress bars of the training loops
+
+
+def test_tokenizer_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_asked(tmp_path, capfd):
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+
+    def train(name, **kwargs):
+        cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / name), epochs=2, warmup_epochs=1, batch_size=4, window=8,
+                                   windows_per_clip=1, device="cpu")
+        capfd.readouterr()
+        result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", **kwargs)
+        return result, capfd.readouterr().err
+
+    result, err = train("shown")
+    assert len(result.history) == 2
+    assert re.search(r"(^|\r)tokenizer:face: +100%.* 2/2 ", err), "the bar names the group and counts epochs"
+    _, err = train("quiet", progress=False)
+    assert "tokenizer:face" not in err
+    _, err = train("rank1", dist_ctx=DistributedContext(rank=1))  # trains, keeps no history: rank 0 records
+    assert "tokenizer:face" not in err, "only rank 0 draws the bar"
+
+
+def test_smlm_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_asked(smlm_parts, tmp_path, capfd):
+    from m3t.runtime import DistributedContext
+    from m3t.smlm.config import SMLMTrainConfig
+    from m3t.smlm.train import train_smlm
+
+    torch.set_num_threads(1)
+    model, vocab, examples = smlm_parts
+    cfg = SMLMTrainConfig(epochs=1, batch_size=4, warmup_steps=1, device="cpu")
+
+    def train(name, **kwargs):
+        capfd.readouterr()
+        result = train_smlm(model.cfg, cfg, vocab, examples, None, "v", tmp_path / f"{name}.pt", **kwargs)
+        return result, capfd.readouterr().err
+
+    result, err = train("shown")
+    assert len(result.history) == 1
+    assert re.search(r"(^|\r)smlm: +100%.* 1/1 ", err), "the bar names the model and counts epochs"
+    _, err = train("quiet", progress=False)
+    assert "smlm" not in err
+    # another rank (here without a process group, so no epoch is run: a rank's share needs its peers)
+    result, err = train("rank1", dist_ctx=DistributedContext(rank=1), stop_after_epochs=0)
+    assert result.history == [] and "smlm" not in err, "only rank 0 draws the bar"

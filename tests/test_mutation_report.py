@@ -47,3 +47,16 @@ def test_mutants_targeted_by_new_tests_are_left_out_of_a_second_rate():
     assert result["targeted"] == 4 and result["untargeted"]["mutants"] == 4
     assert result["untargeted"]["detection_pct"] == 50.0 and result["total"]["detection_pct"] == 62.5
     assert "untargeted" not in mutation.summary(targeted + rest)
+
+
+def test_the_sample_is_stable_when_code_changes_add_mutants():
+    population = [f"m3t.metrics.f__mutmut_{i}" for i in range(500)]
+    sample = mutation.draw(population, 50, seed=0)
+    assert len(sample) == 50 == len(set(sample)) and sample == sorted(sample) and set(sample) <= set(population)
+    assert set(mutation.draw(population, 20, seed=0)) <= set(sample)  # a smaller sample is a subset
+    assert mutation.draw(list(reversed(population)), 50, seed=0) == sample  # the order of the listing is irrelevant
+    assert set(mutation.draw(population, 50, seed=1)) != set(sample)
+    grown = population + [f"m3t.body.g__mutmut_{i}" for i in range(5)]  # a code change planted 5 more
+    assert len(set(mutation.draw(grown, 50, seed=0)) - set(sample)) <= 5
+    shrunk = population[10:]  # ... or removed 10
+    assert len(set(sample) - set(mutation.draw(shrunk, 50, seed=0))) <= 10

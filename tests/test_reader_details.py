@@ -2,14 +2,19 @@
 corpus and shard tests do not pin down.
 
 Written to pin behaviours that mutation testing found unchecked: what a reader's error message names (the file,
-the clip folder, the metadata key), which row a quarantine record points at, the defaults a listed clip gets for
-columns its source leaves empty, how a 2D or partly masked ``.pose`` body is read, the geometry of the synthetic
-corpus (signers stand upright and face the camera, movements stay bounded, the idle sway is subtle) and how it is
-written (atomically, through a hidden temporary sibling folder), and the edge cases of shard validation.
+the clip folder, the line and byte, the metadata key) and the fix it advises, every field of a quarantine record,
+the defaults a listed clip gets for columns its source leaves empty, how text files split into lines, how a 2D or
+partly masked ``.pose`` body is read and how letter clips are resampled, that splits and spelled words are
+reproducible, the geometry of the synthetic corpus (signers stand upright and face the camera, hand targets lie in
+front of the body within reach, movements stay bounded and circles turn one way, the idle sway is subtle), the
+synthetic lexicon's constraints (minimal pairs, distinct manual forms, sentence lengths), how the corpus is written
+(atomically, through a hidden temporary sibling folder), and the edge cases of shard validation.
 """
 from __future__ import annotations
 
 import csv
+import gzip
+import json
 import os
 import pickle
 import shutil
@@ -26,14 +31,37 @@ import corpus_fixtures as fx
 from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import sixd_to_matrix
 from m3t.corpora import synthetic
-from m3t.corpora.base import CorpusError, load_data_pickle
+from m3t.corpora.base import (
+    Collector,
+    CorpusError,
+    Quarantined,
+    hash_split,
+    load_data_pickle,
+    media_path_problem,
+    read_lines,
+)
 from m3t.corpora.clip import Clip
 from m3t.corpora.config import SyntheticCorpusConfig
-from m3t.corpora.fingerspelling import FingerspellingConfig, FingerspellingCorpus, lexicon_root
-from m3t.corpora.fitted_pickles import SmplxSequenceError, SokeSmplxConfig, SokeSmplxCorpus, load_smplx_sequence
+from m3t.corpora.csl_daily import CslDailyCorpus
+from m3t.corpora.fingerspelling import (
+    FingerspellingConfig,
+    FingerspellingCorpus,
+    lexicon_root,
+    resample,
+    spelled_paths,
+)
+from m3t.corpora.fitted_pickles import (
+    SltPickleCorpus,
+    SmplxSequenceError,
+    SokeSmplxConfig,
+    SokeSmplxCorpus,
+    load_smplx_sequence,
+)
+from m3t.corpora.mead import read_flame_params
 from m3t.corpora.nmfs_csl import NmfsCslConfig, NmfsCslCorpus
-from m3t.corpora.posefile import PoseFileConfig, PoseFileCorpus, pose_data, read_pose_info
-from m3t.corpora.synthetic_lexicon import SignForm
+from m3t.corpora.phoenix14t import Phoenix14TCorpus
+from m3t.corpora.posefile import PoseData, PoseFileConfig, PoseFileCorpus, pose_data, read_pose, read_pose_info
+from m3t.corpora.synthetic_lexicon import CONCEPTS, LANGUAGES, SignForm, build_lexicon, make_sentence
 from m3t.shards.io import validate_clip, write_shard
 from m3t.shards.schema import FittedClip, ShardFormatError, arrow_schema
 from m3t.shards.tokens import TokenClip, TokenInfo, read_token_shard, write_token_shard
@@ -524,3 +552,460 @@ def test_token_shard_reader_refuses_other_files_naming_the_file_and_the_fix(tmp_
         with pytest.raises(ShardFormatError, match=fragment) as err:
             read_token_shard(tmp_path / f"{name}.parquet")
         assert str(tmp_path / f"{name}.parquet") in str(err.value) and "rerun the tokenize stage" in str(err.value)
+
+
+# ----------------------------------------------------------------------------------------- shared reader pieces
+def test_quarantine_record_names_files_inside_the_root_relatively_and_others_in_full(tmp_path):
+    out = Collector(tmp_path / "corpus")
+    out.quarantine(tmp_path / "corpus" / "lists" / "train.txt", 4, "clip-4", "missing media")
+    elsewhere = tmp_path / "shared" / "annotations.csv"
+    out.quarantine(elsewhere, 2, None, "empty name")
+    assert out.listing().quarantined == (Quarantined("lists/train.txt", 4, "clip-4", "missing media"),
+                                         Quarantined(str(elsewhere), 2, None, "empty name"))
+    assert out.listing().clips == ()
+
+
+def test_media_leaving_the_root_through_a_link_is_refused_with_the_fix(tmp_path):
+    root, outside = tmp_path / "corpus", tmp_path / "elsewhere"
+    (outside / "clip").mkdir(parents=True)
+    root.mkdir()
+    (root / "inside").mkdir()
+    (root / "link").symlink_to(outside, target_is_directory=True)
+    reason = media_path_problem(root, "link/clip/0.png")
+    assert reason.startswith("unsafe media path: 'link/clip/0.png' resolves outside the corpus root")
+    assert str(outside.resolve() / "clip" / "0.png") in reason
+    assert reason.endswith("through a symbolic link; move the media under the root, or point the root at a folder "
+                           "that holds it")
+    assert media_path_problem(root, "inside/0.png") is None
+    out = Collector(root)
+    assert out.media_problem("link/clip/0.png") == reason and out.media_problem("inside/0.png") is None
+
+
+def test_read_lines_splits_at_newlines_only_and_drops_one_final_newline(tmp_path):
+    path = tmp_path / "list.txt"
+    cases = {b"": [], b"a": ["a"], b"a\n": ["a"], b"a\n\n": ["a", ""], b"a\n\nb": ["a", "", "b"],
+             b"\xef\xbb\xbfa\r\nb\r\n": ["a", "b"], "x\u2028y\u0085z\nw\n".encode(): ["x\u2028y\u0085z", "w"],
+             b"\n": [""]}
+    for data, expected in cases.items():
+        path.write_bytes(data)
+        assert read_lines(path, "hint") == expected, data
+
+
+def test_read_lines_errors_name_the_file_the_line_the_bytes_and_the_fix(tmp_path):
+    path = tmp_path / "split_1.txt"
+    with pytest.raises(CorpusError) as err:
+        read_lines(path, "Point the root at the corpus.")
+    assert str(err.value) == f"{path} not found. Point the root at the corpus."
+    path.write_bytes(b"\xef\xbb\xbfname|split\nS1|tr\xe9in\n")  # one Latin-1 byte on line 2
+    with pytest.raises(CorpusError) as err:
+        read_lines(path, "Point the root at the corpus.")
+    message = str(err.value)
+    assert message.startswith(f"{path} line 2 (byte 19): not UTF-8 text (")
+    bad = repr(b"\xe9in\n")  # the first bad byte and the three after it
+    assert f"{bad}); re-save the file as UTF-8. Point the root at the corpus." in message
+
+
+# ----------------------------------------------------------------------------------------- CSL-Daily pickle
+def test_csl_daily_pickle_without_info_list_is_refused_naming_what_it_holds(tmp_path):
+    """The annotation pickle must be the release's dict with an ``info`` list (see ``build_csl_daily``)."""
+    fx.build_csl_daily(tmp_path)
+    corpus = CslDailyCorpus(tmp_path)
+    path = tmp_path / "sentence_label" / "csl2020ct_v2.pkl"
+    info = corpus.read_info()
+    assert info[0]["name"] == "S000000_P0000_T00" and fx.CSL_REAL_INFO in info and len(info) == 12
+    for payload, found in (({"gloss_map": ["你"], "char_map": []}, "['char_map', 'gloss_map']"),
+                           ({"info": "S000007_P0003_T00"}, "['info']"), ([fx.CSL_REAL_INFO], "list")):
+        with open(path, "wb") as fh:
+            pickle.dump(payload, fh)
+        with pytest.raises(CorpusError) as err:
+            corpus.read_info()
+        assert str(err.value).startswith(f"{path}: expected a dict with an 'info' list of clip records, "
+                                         f"found {found}. Point the corpus root at the CSL-Daily folder")
+
+
+# ----------------------------------------------------------------------------------------- fingerspelling lexicon
+def _letter_table(root: Path, rows: list[dict], extra_lines: tuple[str, ...] = ()) -> Path:
+    """A copy of ``rows`` of the lexicon's ``data.csv`` (spoken-to-signed's ``assets/fingerspelling_lexicon/
+    data.csv``, e.g. ``ase/fs-stse28e9ac023b0e29ca0a3acc12dc46540.pose,en,ase,0,2720,A,A,0``) with their real
+    ``.pose`` files, plus ``extra_lines`` appended verbatim."""
+    for r in rows:
+        (root / r["path"]).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(lexicon_root() / r["path"], root / r["path"])
+    with open(root / "data.csv", "w", encoding="utf-8", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        fh.writelines(line + "\n" for line in extra_lines)
+    return root / "data.csv"
+
+
+@pytest.fixture(scope="module")
+def ase_letters() -> list[dict]:
+    """The first four ASL letter rows (A, B, C, D) of the lexicon's ``data.csv``."""
+    with open(lexicon_root() / "data.csv", encoding="utf-8") as fh:
+        return [r for r in csv.DictReader(fh) if r["signed_language"] == "ase"][:4]
+
+
+def test_letter_table_quarantines_paths_leaving_the_lexicon_and_repeated_letters(tmp_path, ase_letters):
+    table = _letter_table(tmp_path, ase_letters[:2], (
+        "../ase/escape.pose,en,ase,0,100,E,E,0",
+        "ase/../../escape.pose,en,ase,0,100,F,F,0",
+        "/abs/ase/g.pose,en,ase,0,100,G,G,0",
+        "ase/again.pose,en,ase,0,100,a,a,0",
+        "ase/h.pose,en,ase,0,100,,,0",
+        "ase/i.pose,en,ase,0,100,I,I,0,extra"))
+    out = Collector(tmp_path)
+    letters = FingerspellingCorpus(tmp_path).table(out)
+    assert [(x.letter, x.language, x.label, x.row, x.path) for x in letters] == [
+        ("A", "ase", 0, 2, ase_letters[0]["path"]), ("B", "ase", 1, 3, ase_letters[1]["path"])]
+    assert (letters[0].spoken_language, letters[0].start_ms, letters[0].end_ms) == ("en", "0", ase_letters[0]["end"])
+    malformed = "malformed row: empty signed_language, words or path, or extra columns"
+    assert out.listing().quarantined == (
+        Quarantined("data.csv", 4, None, "path ../ase/escape.pose must be relative to the lexicon folder"),
+        Quarantined("data.csv", 5, None, "path ase/../../escape.pose must be relative to the lexicon folder"),
+        Quarantined("data.csv", 6, None, "path /abs/ase/g.pose must be relative to the lexicon folder"),
+        Quarantined("data.csv", 7, None, "letter 'a' listed twice for ase"),
+        Quarantined("data.csv", 8, None, malformed), Quarantined("data.csv", 9, None, malformed))
+    assert [x.letter for x in FingerspellingCorpus(tmp_path).table()] == ["A", "B"]  # without a collector: skipped
+    table.unlink()
+    with pytest.raises(CorpusError) as err:
+        FingerspellingCorpus(tmp_path).table()
+    assert str(err.value) == f"{table} not found. Reinstall spoken-to-signed."
+
+
+def test_fingerspelling_splits_and_spelled_words_are_reproducible(tmp_path, ase_letters):
+    """Splits and the drawn words are part of the data version: a re-listing must give the same ones (pinned),
+    and every clip, letter or word, takes the corpus's hash split of its id."""
+    _letter_table(tmp_path, ase_letters)
+    fractions = (0.4, 0.3, 0.3)
+    cfg = FingerspellingConfig(words_per_language=3, max_letters=3, split_fractions=fractions, seed=1)
+    clips = FingerspellingCorpus(tmp_path, cfg).listing().clips
+    assert [(c.text, c.split) for c in clips] == [("A", "train"), ("B", "train"), ("C", "test"), ("D", "train"),
+                                                   ("BC", "dev"), ("CD", "test"), ("DC", "test")]
+    assert all(c.split == hash_split(c.id, fractions, "fingerspelling") for c in clips)
+    words = FingerspellingCorpus(tmp_path, FingerspellingConfig(words_per_language=3, max_letters=3)).listing().clips
+    assert [(c.id, c.text, c.gloss) for c in words[4:]] == [("ase-spelled-000", "BA", "B A"),
+                                                            ("ase-spelled-001", "CD", "C D"),
+                                                            ("ase-spelled-002", "CDC", "C D C")]
+    frames = {c.text: int(c.get("frames")) for c in words}
+    assert [int(c.get("frames")) for c in words[4:]] == [frames["B"] + frames["A"], frames["C"] + frames["D"],
+                                                         2 * frames["C"] + frames["D"]]
+    letter = {c.text: c.media for c in words[:4]}
+    assert words[6].get("letter_paths") == "|".join(letter[x] for x in "CDC") and words[6].media == "ase"
+    assert spelled_paths(words[6], tmp_path) == [tmp_path / letter[x] for x in "CDC"]
+
+
+def test_spelled_clip_without_letter_paths_is_refused_naming_the_clip(tmp_path):
+    clip = Clip(id="ase-spelled-007", corpus="fingerspelling", split="train", language="ase", signer="unknown",
+                text="AB", gloss="A B", media="ase", fps=25.0, extra=(("media_kind", "spelled"),))
+    with pytest.raises(CorpusError) as err:
+        spelled_paths(clip, tmp_path)
+    assert str(err.value) == "spelled clip ase-spelled-007 lists no letter_paths; re-list the fingerspelling corpus"
+    one = Clip(**{**clip.__dict__, "extra": (("letter_paths", "ase/a.pose"),)})
+    assert spelled_paths(one, tmp_path) == [tmp_path / "ase" / "a.pose"]
+
+
+def _pose_data(points: np.ndarray, confidence: np.ndarray, fps: float) -> PoseData:
+    return PoseData(points.astype(np.float32), confidence.astype(np.float32), fps, (("hand", points.shape[1]),),
+                    640, 480)
+
+
+def test_resample_interpolates_seen_points_and_takes_the_nearest_frame_otherwise():
+    """Linear in time where both neighbouring frames see a point (its confidence too); nearest frame otherwise."""
+    T = 5
+    points = np.zeros((T, 2, 3))
+    points[:, :, 0] = np.arange(T)[:, None] * 10.0  # x = 10 t
+    confidence = np.tile([[0.2, 0.9]], (T, 1))
+    confidence[:, 0] = [0.2, 0.6, 0.2, 0.6, 0.2]
+    confidence[2, 1] = 0.0  # point 1 unseen at frame 2
+    data = _pose_data(points, confidence, 25.0)
+    up = resample(data, 50.0)
+    assert up.points.shape == (10, 2, 3) and up.confidence.shape == (10, 2) and up.fps == 50.0
+    assert up.points.dtype == np.float32 and up.confidence.dtype == np.float32
+    np.testing.assert_allclose(up.points[:, 0, 0], [0, 5, 10, 15, 20, 25, 30, 35, 40, 40])  # the last frame held
+    np.testing.assert_allclose(up.confidence[:, 0], [0.2, 0.4, 0.6, 0.4, 0.2, 0.4, 0.6, 0.4, 0.2, 0.2], rtol=1e-6)
+    # point 1 at frames 1.5 and 2.5 has one unseen neighbour: nearest frame (2 and 3), not a blend
+    np.testing.assert_allclose(up.points[[3, 5], 1, 0], [20.0, 30.0])
+    np.testing.assert_allclose(up.confidence[[3, 4, 5], 1], [0.0, 0.0, 0.9])
+    np.testing.assert_allclose(up.confidence[[1, 7], 1], [0.9, 0.9])
+    assert resample(data, 25.0) is data
+    near = resample(_pose_data(np.zeros((100, 1, 3)), np.ones((100, 1)), 25.0), 25.5)  # a small rate change
+    assert near.points.shape[0] == 102 and near.fps == 25.5
+    down = resample(_pose_data(np.zeros((3, 1, 3)), np.ones((3, 1)), 50.0), 10.0)
+    assert down.points.shape[0] == 1  # never fewer than one frame
+
+
+# ----------------------------------------------------------------------------------------- SMPL-X fits, slt pickles
+def _write_frames(folder: Path, frames: list[dict]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for n, frame in enumerate(frames):
+        with open(folder / f"{n}.pkl", "wb") as fh:
+            pickle.dump(frame, fh)
+
+
+def test_smplx_export_names_are_read_in_both_array_shapes_and_checked_per_key(tmp_path):
+    """Exports with the smplx package's names (``fx.smplx_frame(names="smplx")``) store (D,) or (1, D) arrays;
+    both stack to (T, D). A wrong or missing key is named as the file names it."""
+    rng = np.random.default_rng(4)
+    frames = [fx.smplx_frame(rng, names="smplx") for _ in range(3)]
+    frames[1] = {k: v[None] for k, v in frames[1].items()}  # (1, D), as some exporters write
+    _write_frames(tmp_path / "clip", frames)
+    seq = load_smplx_sequence(tmp_path / "clip")
+    assert {k: v.shape for k, v in seq.items()} == {
+        "global_orient": (3, 3), "body_pose": (3, 63), "left_hand_pose": (3, 45), "right_hand_pose": (3, 45),
+        "jaw_pose": (3, 3), "expression": (3, 10), "betas": (3, 10), "transl": (3, 3)}
+    np.testing.assert_array_equal(seq["body_pose"][1], frames[1]["body_pose"][0])
+
+    missing = [dict(f) for f in frames]
+    del missing[2]["body_pose"]
+    _write_frames(tmp_path / "missing", missing)
+    with pytest.raises(SmplxSequenceError) as err:
+        load_smplx_sequence(tmp_path / "missing")
+    assert str(err.value) == f"{tmp_path / 'missing' / '2.pkl'}: SMPL-X key 'body_pose' missing"
+    assert (err.value.file, err.value.key) == (tmp_path / "missing" / "2.pkl", "body_pose")
+
+    for key, width, names in (("global_orient", 4, "smplx"), ("smplx_root_pose", 4, "soke"),
+                              ("right_hand_pose", 48, "smplx"), ("transl", 2, "smplx")):
+        frame = fx.smplx_frame(rng, names=names)
+        frame[key] = np.zeros(width, np.float32)
+        _write_frames(tmp_path / key, [frame])
+        with pytest.raises(SmplxSequenceError) as err:
+            load_smplx_sequence(tmp_path / key)
+        expected = {"transl": 3, "right_hand_pose": 45}.get(key, 3)
+        assert str(err.value) == f"{tmp_path / key / '0.pkl'}: key {key!r} has {width} values; expected {expected}"
+        assert (err.value.file, err.value.key) == (tmp_path / key / "0.pkl", key)
+
+    without_transl = {k: v for k, v in fx.smplx_frame(rng, names="smplx").items() if k != "transl"}
+    for name, pair, expected in (("late", [without_transl, frames[0]], "present but absent in 0.pkl"),
+                                 ("dropped", [frames[0], without_transl], "missing (present in 0.pkl)")):
+        _write_frames(tmp_path / name, pair)  # an optional key is kept only when every frame has it
+        with pytest.raises(SmplxSequenceError) as err:
+            load_smplx_sequence(tmp_path / name)
+        assert str(err.value) == f"{tmp_path / name / '1.pkl'}: key 'transl' {expected}"
+        assert (err.value.file, err.value.key) == (tmp_path / name / "1.pkl", "transl")
+
+
+def test_soke_empty_clip_folder_and_repeated_annotation_id_are_quarantined_with_every_field(tmp_path):
+    fx.build_soke(tmp_path, "phoenix")  # SOKE's Phoenix layout, see corpus_fixtures.build_soke
+    (tmp_path / "notes.csv").write_text("id,text,gloss,signer\nb1_0-8-rgb_front,guten morgen,,\n"
+                                        "c1_3-5-rgb_front,es regnet,REGEN,s3\nb1_0-8-rgb_front,noch einmal,,\n",
+                                        encoding="utf-8")
+    listing = SokeSmplxCorpus(tmp_path, SokeSmplxConfig(annotation="notes.csv")).listing()
+    assert {c.id: (c.split, c.text, c.gloss, c.signer) for c in listing.clips} == {
+        "b1_0-8-rgb_front": ("dev", "guten morgen", "", "unknown"),
+        "c1_3-5-rgb_front": ("test", "es regnet", "REGEN", "s3")}
+    assert listing.quarantined[0] == Quarantined("notes.csv", 4, "b1_0-8-rgb_front", "id listed twice")
+    assert Quarantined("train/empty", None, "empty", "missing media (no <frame>.pkl files)") in listing.quarantined
+
+
+def test_soke_clip_folder_linking_out_of_the_root_is_refused_before_it_is_read(tmp_path):
+    root, outside = tmp_path / "soke", tmp_path / "elsewhere" / "clip"
+    fx.build_soke(root, "phoenix")
+    outside.mkdir(parents=True)  # holds no frame pickles: only the link is wrong
+    (root / "train" / "escape").symlink_to(outside, target_is_directory=True)
+    listing = SokeSmplxCorpus(root).listing()
+    (q,) = [q for q in listing.quarantined if q.clip_id == "escape"]
+    assert q.file == "train/escape" and q.row is None
+    assert q.reason.startswith("unsafe media path: 'train/escape' resolves outside the corpus root")
+    assert q.reason.endswith("point the root at a folder that holds it: train/escape")
+    assert "escape" not in {c.id for c in listing.clips}
+
+
+def test_slt_records_that_are_not_named_dicts_are_quarantined_and_clips_record_their_shape(tmp_path):
+    """Records of neccam/slt's gzip pickles (``fx.slt_entries``), with the kinds of broken record one meets."""
+    rng = np.random.default_rng(0)
+    entries = fx.slt_entries("train", 2, rng, dims=12)
+    entries += [["train/listed", "s", "", "", np.zeros((2, 3), np.float32)],
+                {**fx.slt_entries("train", 1, rng)[0], "name": ""},
+                {**fx.slt_entries("train", 1, rng)[0], "name": 17},
+                {**fx.slt_entries("train", 1, rng)[0], "name": "train/ints", "sign": np.zeros((3, 4), np.int64)},
+                {**fx.slt_entries("train", 1, rng)[0], "name": "train/none", "sign": np.zeros((0, 4), np.float32)},
+                {**fx.slt_entries("train", 1, rng)[0], "name": "train/nested", "sign": [[0.5, 0.5]]}]
+    with gzip.open(tmp_path / "phoenix14t.pami0.train", "wb") as fh:
+        pickle.dump(entries, fh)
+    listing = SltPickleCorpus(tmp_path).listing()
+    assert [(c.id, c.split, c.signer, c.media) for c in listing.clips] == [
+        ("train__clip0", "train", "Signer00", "phoenix14t.pami0.train"),
+        ("train__clip1", "train", "Signer01", "phoenix14t.pami0.train")]
+    assert [dict(c.extra) for c in listing.clips] == [
+        {"media_kind": "keypoints", "index": str(i), "frames": str(5 + i), "dims": "12", "name": f"train/clip{i}"}
+        for i in range(2)]
+    file = "phoenix14t.pami0.train"
+    q = listing.quarantined
+    assert (q[0], *q[2:]) == (
+        Quarantined(file, 2, None, "entry is a list, expected a dict with keys name, signer, gloss, text, sign"),
+        Quarantined(file, 4, None, "name is not a non-empty string"),
+        Quarantined(file, 5, "train/ints", "sign is (3, 4); expected a non-empty (T, D) float array"),
+        Quarantined(file, 6, "train/none", "sign is (0, 4); expected a non-empty (T, D) float array"),
+        Quarantined(file, 7, "train/nested", "sign is list; expected a non-empty (T, D) float array"))
+    assert len(q) == 6 and q[1] == Quarantined(file, 3, None, "name is not a non-empty string")  # "" is no id
+
+
+# ----------------------------------------------------------------------------------------- MEAD, NMFs-CSL, PHOENIX
+def test_flame_files_are_read_by_suffix_and_a_missing_one_is_named(tmp_path):
+    """EMOTE's release stores (1, T, D) datasets (``fx.flame_arrays(batch_axis=True)``); ``.h5`` is the same format
+    as ``.hdf5``."""
+    arrays = fx.flame_arrays(4, exp=100, shape=300, batch_axis=True)
+    for name in ("shape_pose_cam.hdf5", "shape_pose_cam.h5"):
+        fx.write_hdf5(tmp_path / name, arrays)
+        params = read_flame_params(tmp_path / name)
+        assert {k: v.shape for k, v in params.items()} == {"exp": (4, 100), "jaw": (4, 3), "global_pose": (4, 3),
+                                                          "shape": (4, 300), "cam": (4, 3)}
+        np.testing.assert_array_equal(params["jaw"], arrays["jaw"][0])
+    (tmp_path / "shape_pose_cam.mat").write_bytes(b"MATLAB 5.0")
+    with pytest.raises(CorpusError, match="unsupported FLAME parameter file; expected shape_pose_cam.npz or .hdf5"):
+        read_flame_params(tmp_path / "shape_pose_cam.mat")
+    missing = tmp_path / "M003" / "front" / "angry" / "level_1" / "001" / "shape_pose_cam.hdf5"
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(missing)
+    assert str(err.value) == f"FLAME parameter file {missing} not found"
+
+
+def test_nmfs_list_blank_lines_are_skipped_and_rows_keep_their_line_numbers(tmp_path):
+    fx.build_nmfs_csl(tmp_path)
+    lines = (tmp_path / "train.txt").read_text(encoding="utf-8").splitlines()
+    (tmp_path / "train.txt").write_text("\n".join(lines[:2] + ["", "  "] + lines[2:]) + "\n", encoding="utf-8")
+    listing = NmfsCslCorpus(tmp_path).listing()
+    train = [c for c in listing.clips if c.split == "train"]
+    assert [c.id for c in train] == ["P01__0_01", "P01__1_01", "P02__2_01", "P02__3_01", "P03__0_02"]
+    assert all(c.signer == "unknown" and c.language == "CSL" for c in listing.clips)
+    assert [(q.file, q.row, q.clip_id) for q in listing.quarantined] == [
+        ("train.txt", 8, "P09__9_01"), ("train.txt", 9, None), ("train.txt", 10, "P09__missing"),
+        ("train.txt", 11, None)]
+
+
+def test_phoenix_rows_without_name_or_frame_folder_are_quarantined_with_every_field(tmp_path):
+    """Rows in the release's ``|``-separated layout (see ``fx.build_phoenix14t``) with the name or the video
+    column's folder left out."""
+    fixture = fx.build_phoenix14t(tmp_path)
+    path = tmp_path / fx.PHOENIX_FILE.format(split="train")
+    lines = path.read_text(encoding="utf-8").splitlines()
+    lines.append("|26October_2010_Tuesday_tagesschau-1/1/*.png|-1|-1|Signer05|REGEN|es regnet")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    quarantined = Phoenix14TCorpus(tmp_path).listing().quarantined
+    file = fx.PHOENIX_FILE.format(split="train")
+    (no_folder_row,) = [row for f, row, reason in fixture.bad if "names no frame folder" in reason]
+    assert Quarantined(file, no_folder_row, "train_no_folder",
+                       "video column '*.png' names no frame folder; expected '<name>/1/*.png'") in quarantined
+    assert quarantined[-1] == Quarantined(file, len(lines), None, "empty name")
+
+
+# ----------------------------------------------------------------------------------------- .pose collections (2)
+def test_truncated_pose_body_error_names_the_file_the_failure_and_the_fix(tmp_path, ase_rows):
+    data = (lexicon_root() / ase_rows[0]["path"]).read_bytes()
+    path = tmp_path / "cut.pose"
+    path.write_bytes(data[: len(data) - 1000])  # header intact, the body cut short
+    with pytest.raises(CorpusError) as err:
+        read_pose(path)
+    message, cause = str(err.value), err.value.__cause__
+    assert cause is not None
+    assert message.startswith(f"{path}: unreadable or truncated .pose file ({type(cause).__name__}: {cause})")
+    assert message.endswith("; re-export it")
+    with pytest.raises(CorpusError, match="does not exist; check the corpus root"):
+        read_pose(tmp_path / "none.pose")
+
+
+def test_pose_index_header_and_empty_fields_are_reported_naming_file_row_and_clip(tmp_path, ase_rows):
+    shutil.copyfile(lexicon_root() / ase_rows[0]["path"], tmp_path / "a.pose")
+    index = tmp_path / "index.csv"
+    index.write_text("id,path,label\na,a.pose,0\n", encoding="utf-8")
+    with pytest.raises(CorpusError) as err:
+        PoseFileCorpus(tmp_path, PoseFileConfig(index="index.csv")).listing()
+    assert str(err.value) == (f"{index} line 1: columns ['id', 'path', 'label'] lack ['split', 'text', 'language', "
+                              "'signer']; expected id,path,split,text,language,signer and optional label")
+    index.write_text("id,path,split,text,language,signer,label\na,a.pose,train,A,ase,s0,7\nnopath,,train,B,ase,s0,1\n"
+                     ",a.pose,dev,C,ase,s0,2\nb,a.pose,dev,A,ase,s0,\nc,a.pose,test,A,ase,s0,-1\n", encoding="utf-8")
+    listing = PoseFileCorpus(tmp_path, PoseFileConfig(index="index.csv")).listing()
+    assert [(c.id, c.split, c.label) for c in listing.clips] == [("a", "train", 7), ("b", "dev", None),
+                                                                  ("c", "test", -1)]
+    assert listing.quarantined == (Quarantined("index.csv", 3, "nopath", "empty id or path"),
+                                   Quarantined("index.csv", 4, None, "empty id or path"))
+
+
+# ----------------------------------------------------------------------------------------- synthetic corpus (2)
+def test_hand_targets_lie_in_front_of_the_body_within_the_arms_reach(body):
+    """The right hand's targets per location (body faces -y, z up, its right is -x) are reachable by the right
+    arm, lie in front of the torso, and are ordered as the locations' names say."""
+    targets, rest = synthetic._targets(body)
+    with torch.no_grad():
+        joints = body.forward(body.rest_params(1), body.default_identity()).joints[0].numpy()
+    j = {n: joints[synthetic._joint(body, n)] for n in ("head", "neck01", "upperarm01.R", "upperarm01.L",
+                                                       "lowerarm01.R", "wrist.R", "finger3-1.R")}
+    chain = ("upperarm01.R", "lowerarm01.R", "wrist.R", "finger3-1.R")
+    reach = sum(np.linalg.norm(j[b] - j[a]) for a, b in zip(chain, chain[1:]))  # shoulder to middle knuckle
+    assert 0.45 < reach < 0.8
+    front = j["neck01"][1]  # the body's midline depth; in front = smaller y
+    for name, point in {**targets, "rest": rest}.items():
+        assert np.linalg.norm(point - j["upperarm01.R"]) < 0.95 * reach, name
+        assert 0.08 < front - point[1] < 0.45, name
+    shoulder_z, head_z = j["upperarm01.R"][2], j["head"][2]
+    chest = targets["chest"]
+    assert shoulder_z - 0.3 < chest[2] < shoulder_z - 0.05 and abs(chest[0]) < 0.05  # on the sternum
+    assert front - chest[1] < 0.3  # close to the chest: the hand touches it
+    assert targets["neutral"][1] < chest[1] - 0.1  # the neutral signing space is further out
+    assert targets["neutral_high"][2] - targets["neutral"][2] > 0.1
+    assert rest[2] < targets["neutral"][2] < targets["chest"][2] < targets["chin"][2] < targets["forehead"][2]
+    assert j["neck01"][2] < targets["chin"][2] < head_z < targets["forehead"][2]
+    assert targets["cheek"][0] < -0.03 and targets["shoulder"][0] > 0.1  # own right cheek, the other shoulder
+    assert all(point[0] < 0 for name, point in targets.items() if name.startswith("neutral"))
+
+
+@pytest.mark.parametrize("axis", [(0.0, 0.0, 1.0), (0.3, 0.2, 0.93), (0.6, 0.0, 0.8), (0.48, -0.6, 0.64)])
+def test_circle_turns_right_handedly_about_the_sign_axis(axis):
+    """A circle's direction is part of the sign: it turns counter-clockwise seen from the tip of the sign's axis
+    (a sign with the opposite axis circles the other way)."""
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    shoulder, _ = synthetic._movement(_sign("circle", axis), 33, 1.0)
+    turn = np.cross(shoulder[:-1], shoulder[1:]) @ axis
+    assert np.all(turn > 0)
+    back, _ = synthetic._movement(_sign("circle", -axis), 33, 1.0)
+    assert np.all(np.cross(back[:-1], back[1:]) @ -axis > 0)
+
+
+def test_clip_index_records_without_extra_are_read_and_bad_lines_are_named(tmp_path):
+    record = {k: v for k, v in _tiny_clip(0).clip.__dict__.items() if k != "extra"}
+    index = tmp_path / "clips.jsonl"
+    index.write_text(json.dumps(record, ensure_ascii=False) + "\n"
+                     + json.dumps({**record, "id": "b", "extra": [["kind", "sentence"]]}) + "\n", encoding="utf-8")
+    first, second = synthetic.SyntheticCorpus(tmp_path).clips()
+    assert first == Clip(**{**record, "extra": ()}) and second.extra == (("kind", "sentence"),)
+    index.write_text(json.dumps(record) + "\n" + json.dumps({"id": "x"}) + "\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=rf"{index} line 2: not a clip record"):
+        synthetic.SyntheticCorpus(tmp_path).clips()
+
+
+# ----------------------------------------------------------------------------------------- synthetic lexicon
+def test_lexicon_can_be_all_minimal_pairs_but_not_more_pairs_than_signs():
+    signs = build_lexicon(6, 3, np.random.default_rng(0))
+    assert [s.group for s in signs] == ["confusing"] * 6 and [s.pair for s in signs] == [0, 0, 1, 1, 2, 2]
+    for a, b in zip(signs[::2], signs[1::2]):
+        assert a.manual() == b.manual() and a.mouthing != b.mouthing and a.brows != b.brows
+    assert len(build_lexicon(5, 2, np.random.default_rng(0))) == 5
+    with pytest.raises(ValueError, match=r"corpus.confusing_pairs=3 needs at least 6 signs"):
+        build_lexicon(5, 3, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=rf"corpus.num_signs=29 exceeds the {len(CONCEPTS)} concepts"):
+        build_lexicon(len(CONCEPTS) + 1, 0, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_normal_signs_differ_in_their_manual_form(seed):
+    """Normal signs are told apart by the hands alone: no two share handshape, location, movement and
+    handedness (only the minimal pairs share a manual form)."""
+    signs = build_lexicon(len(CONCEPTS), 2, np.random.default_rng(seed))
+    np.testing.assert_allclose([np.linalg.norm(s.axis) for s in signs], 1.0)  # movement directions are unit vectors
+    normal = [s.manual()[:4] for s in signs if s.group == "normal"]
+    assert len(normal) == len(CONCEPTS) - 4 and len(set(normal)) == len(normal)
+
+
+def test_sentences_have_as_many_glosses_as_asked_in_each_word_order():
+    signs = build_lexicon(len(CONCEPTS), 0, np.random.default_rng(1))
+    rng = np.random.default_rng(2)
+    for language in LANGUAGES:
+        for length in (2, 3, 4):
+            for _ in range(5):
+                text, gloss = make_sentence(signs, language, length, rng)
+                roles = [CONCEPTS[g][0] for g in gloss]
+                assert len(gloss) == length and sorted(roles) == sorted(["person", "verb", "thing", "time"][:length])
+                assert text and (text.endswith("。") if language == "CSL-SYN" else text[0].isupper())
+    _, gloss = make_sentence(signs, "ASL-SYN", 4, np.random.default_rng(3))
+    assert [CONCEPTS[g][0] for g in gloss] == ["time", "thing", "person", "verb"]

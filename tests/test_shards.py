@@ -1,4 +1,5 @@
-"""Shard format round trip, versioning, atomic writes, length bucketing and padding (no body model needed)."""
+"""Shard format round trip, versioning, atomic writes, length bucketing and padding; token shards; the skeleton view
+of fitted clips (the one test that needs a body model, the session's Anny ``body``)."""
 from __future__ import annotations
 
 import json
@@ -244,3 +245,130 @@ def test_sampler_refuses_an_empty_batch_or_chunk(batch_size, chunk_batches):
     message = rf"batch_size \({batch_size}\) and chunk_batches \({chunk_batches}\) must be >= 1"
     with pytest.raises(ValueError, match=message):
         LengthBucketSampler([5, 6, 7], batch_size=batch_size, chunk_batches=chunk_batches)
+
+
+def test_item_metadata_is_the_clip_record_without_its_id_plus_fit_and_shard(tmp_path, clips):
+    path = write_shard(tmp_path / "a.parquet", clips, LAYOUT)
+    item = ShardDataset([path])[3]
+    assert item.clip_id == "clip-0003" and item.length == clips[3].num_frames
+    assert item.metadata == {
+        "corpus": "toy", "split": "dev", "language": "DGS", "signer": "s3", "text": "Sätze 3", "gloss": "HALLO WELT",
+        "media": "videos/3.mp4", "fps": 25.0, "label": None, "extra": {"session": "3", "camera": "front"},
+        "key": f"sha256:{3:064x}", "body_model": "anny",
+        "camera": {"focal": [1000.0, 1000.0], "center": [640.0, 360.0], "model": "pinhole"},
+        "metrics": item.metadata["metrics"], "shard": str(path),
+    }
+    assert item.metadata["metrics"]["reproj_px"] == 4.5 and math.isnan(item.metadata["metrics"]["joint_mm"])
+
+
+@pytest.mark.parametrize("non_blocking", [False, True])
+def test_motion_batch_to_moves_every_tensor_and_keeps_ids_and_metadata(non_blocking):
+    """``to`` is checked on PyTorch's 'meta' device, which needs no GPU."""
+    from m3t.shards import MotionBatch
+
+    lengths = torch.tensor([3, 1])
+    batch = MotionBatch(clip_ids=("a", "b"), params={"body": torch.ones(2, 3, 12), "face": torch.zeros(2, 3, 3)},
+                        identity=torch.ones(2, 4), mask=torch.arange(3)[None] < lengths[:, None], lengths=lengths,
+                        metadata=({"split": "train"}, {"split": "dev"}))
+    moved = batch.to("meta", non_blocking=non_blocking) if non_blocking else batch.to("meta")
+    assert moved.clip_ids == ("a", "b") and moved.metadata == batch.metadata
+    tensors = {**moved.params, "identity": moved.identity, "mask": moved.mask, "lengths": moved.lengths}
+    assert {k: v.device.type for k, v in tensors.items()} == dict.fromkeys(tensors, "meta")
+    before = {**batch.params, "identity": batch.identity, "mask": batch.mask, "lengths": batch.lengths}
+    assert {k: (tuple(v.shape), v.dtype) for k, v in tensors.items()} == \
+        {k: (tuple(v.shape), v.dtype) for k, v in before.items()}
+    assert batch.identity.device.type == "cpu"  # the original batch is left where it was
+
+
+def test_rewriting_an_identical_shard_leaves_the_file_untouched(tmp_path, clips):
+    """A shard whose bytes would not change keeps its inode and mtime (DVC then sees no change)."""
+    import os
+
+    path = write_shard(tmp_path / "a.parquet", clips, LAYOUT)
+    os.utime(path, ns=(1_000_000_000, 1_000_000_000))
+    inode = path.stat().st_ino
+    write_shard(path, clips, LAYOUT)
+    assert path.stat().st_mtime_ns == 1_000_000_000 and path.stat().st_ino == inode
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.parquet"]
+    write_shard(path, clips[:2], LAYOUT)
+    assert path.stat().st_mtime_ns != 1_000_000_000 and len(read_shard(path)) == 2
+
+
+def test_schema_refuses_layouts_a_shard_cannot_hold():
+    from m3t.body.protocol import Modality, ModalityLayout
+
+    twice = ModalityLayout((Modality("body", "scalar", ("a",)), Modality("body", "scalar", ("b",))), ("h",))
+    with pytest.raises(ValueError, match=r"layout has duplicate modality names: \['body', 'body'\]"):
+        arrow_schema(twice)
+    clash = ModalityLayout((Modality("text", "scalar", ("a",)), Modality("identity", "scalar", ("b",))), ("h",))
+    with pytest.raises(ValueError, match=r"modality names \['identity', 'text'\] collide with shard metadata columns "
+                                         r"\[.*'body_model'.*\]; rename the modality in the body model's layout"):
+        arrow_schema(clash)
+    empty = ModalityLayout((Modality("body", "scalar", ("a",)), Modality("face", "scalar", ())), ())
+    with pytest.raises(ValueError, match=r"layout streams \['face', 'identity'\] have dim 0; shards need every "
+                                         r"modality and the identity non-empty"):
+        arrow_schema(empty)
+
+
+def test_shard_without_its_layout_is_named_damaged(tmp_path, clips):
+    path = write_shard(tmp_path / "a.parquet", clips, LAYOUT)
+    table = pq.read_table(path)
+    damaged = tmp_path / "damaged.parquet"
+    meta = {k: v for k, v in table.schema.metadata.items() if k != b"m3t.layout"}
+    pq.write_table(table.replace_schema_metadata(meta), damaged)
+    for read in (read_shard, shard_layout):
+        with pytest.raises(ShardFormatError) as err:
+            read(damaged)
+        assert str(err.value) == f"{damaged}: no m3t.layout in the Parquet metadata; the shard is damaged"
+
+
+def _token_clip(i: int, frames: int, tokens: dict):
+    from m3t.shards.tokens import TokenClip
+
+    return TokenClip(make_clip(i, frames, np.random.default_rng(i)).clip, frames,
+                     {k: np.asarray(v, dtype=np.int64) for k, v in tokens.items()})
+
+
+def test_token_shard_holds_codebooks_up_to_the_int16_limit(tmp_path):
+    from m3t.shards.tokens import TokenInfo, read_token_shard, write_token_shard
+
+    info = TokenInfo({"body": 32767, "face": 8}, 4, {"body": "sha256:ab"})
+    clips = [_token_clip(1, 7, {"body": [32766, 0], "face": [7, 3]}), _token_clip(2, 4, {"body": [5], "face": [0]})]
+    shard = read_token_shard(write_token_shard(tmp_path / "train.tokens.parquet", clips, info))
+    assert shard.info == info
+    assert [c.clip for c in shard.clips] == [c.clip for c in clips] and [c.num_frames for c in shard.clips] == [7, 4]
+    assert shard.clips[0].tokens["body"].tolist() == [32766, 0] and shard.clips[1].tokens["face"].tolist() == [0]
+    schema = pq.read_schema(tmp_path / "train.tokens.parquet")
+    assert schema.names[-3:] == ["num_frames", "body", "face"]
+    assert {f.name: (str(f.type), f.nullable) for f in schema if f.name in ("label", "num_frames", "body", "text")} == {
+        "label": ("int64", True), "text": ("string", False), "num_frames": ("int32", False),
+        "body": ("list<element: int16>", False)}
+    with pytest.raises(ValueError, match="codebooks above 32767 codes do not fit the int16 token columns"):
+        write_token_shard(tmp_path / "big.tokens.parquet", clips, TokenInfo({"body": 32768, "face": 8}, 4, {}))
+    assert not (tmp_path / "big.tokens.parquet").exists()
+
+
+def test_skeleton_clips_pose_every_clip_with_frames_in_order_without_a_progress_bar(body, capsys):
+    """Uses the session's Anny ``body``: the one test here that needs a body model."""
+    from m3t.body.skeleton import body_graph
+    from m3t.shards.skeletons import SKELETON_STREAM, skeleton_clips
+
+    def fitted(i: int, frames: int) -> FittedClip:
+        rng = np.random.default_rng(i)
+        params = {k: v.numpy() + 0.02 * rng.standard_normal(v.shape).astype(np.float32)
+                  for k, v in body.rest_params(frames).items()}
+        made = make_clip(i, frames, rng)
+        return FittedClip(made.clip, made.key, params, body.default_identity().numpy(), {}, {}, "anny")
+
+    graph = body_graph()
+    clips = [fitted(0, 3), fitted(1, 0), fitted(2, 2)]
+    out = skeleton_clips(body, clips, graph)
+    assert capsys.readouterr().err == ""  # no progress bar unless asked for
+    assert [s.clip_id for s in out] == ["clip-0000", "clip-0002"]  # the empty clip is left out
+    for s, frames in zip(out, (3, 2)):
+        assert s.points.shape == (frames, len(graph.joints), 3) and s.points.dtype == np.float64
+        assert s.coords.shape == (frames, 3 * len(graph.joints)) and s.coords.dtype == np.float32
+        assert 0.2 < s.scale < 0.6  # metres per unit: a mean shoulder width
+        assert set(s.as_fitted().params) == {SKELETON_STREAM} and s.as_fitted().clip is s.fitted.clip
+    skeleton_clips(body, clips[:1], graph, progress=True, desc="skeletons: dev")
+    assert "skeletons: dev" in capsys.readouterr().err

@@ -342,7 +342,7 @@ class SltPickleCorpus(CorpusAdapter):
                 problem = _slt_problem(entry)
                 if problem:
                     name = entry.get("name") if isinstance(entry, dict) else None
-                    out.quarantine(path, index, name if isinstance(name, str) else None, problem)
+                    out.quarantine(path, index, name if isinstance(name, str) and name else None, problem)
                     continue
                 clip = Clip(id=entry["name"].replace("/", "__"), corpus=self.name, split=split, language=cfg.language,
                             signer=str(entry["signer"]), text=str(entry["text"]), gloss=str(entry["gloss"]),

@@ -36,7 +36,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from m3t.metrics.dtw import DTWResult, _as_cost
-from m3t.metrics.procrustes import ILL_CONDITIONED, NEWTON_MAX_ITERATIONS, NEWTON_RESIDUAL, NEWTON_TOLERANCE
+from m3t.metrics.procrustes import (
+    EIGENPAIR_RESIDUAL,
+    ILL_CONDITIONED,
+    NEWTON_MAX_ITERATIONS,
+    NEWTON_RESIDUAL,
+    NEWTON_TOLERANCE,
+)
 from m3t.runtime import jit
 
 JACOBI_SWEEPS = 30  # cyclic sweeps of the 4x4 fallback; converges quadratically, ~6 suffice
@@ -314,6 +320,11 @@ def _pa_row(xs, ys, var_s, var_t, i, m0, m1, work, out):
         missed = abs((l2 + q2[j]) * l2 + q1[j] * lj + q0[j]) > NEWTON_RESIDUAL * 0.25 * q2[j] * q2[j]
         lower = max(max(a00, a11), max(a22, a33)) + lj
         missed = missed | (lj < lower - tol[j])
+        # ... or lambda off the eigenvector's Rayleigh quotient, q^T (N - lambda I) q != 0 (as procrustes)
+        squared = w * w + x * x + y * y + z * z
+        quadratic = (a00 * w * w + a11 * x * x + a22 * y * y + a33 * z * z
+                     + 2.0 * (a01 * w * x + a02 * w * y + a03 * w * z + a12 * x * y + a13 * x * z + a23 * y * z))
+        missed = missed | (abs(quadratic) > EIGENPAIR_RESIDUAL * bound * squared)
         bad = (top <= ILL_CONDITIONED * bound * bound * bound or missed) and bound > 0.0
         ill[j] = 1.0 if bad else 0.0
         ill_any = ill_any | bad

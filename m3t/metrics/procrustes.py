@@ -13,7 +13,9 @@ the translation that maps centroids. Two solvers give the same answer:
   collinear points, whose eigenvector is not unique) are re-solved by SVD, where every optimal rotation
   aligns alike; so are those where Newton did not end on the largest root: at a double root (collinear
   points onto the same line) f and f' vanish together, one rounding-sized step can jump far below, and the
-  iteration then stalls where f' <= 0 (the rotation of a line onto itself came out with scale 2/3).
+  iteration then stalls where f' <= 0 (the rotation of a line onto itself came out with scale 2/3). A stall
+  just below the root leaves f tiny (~ the squared distance) and the eigenvector right, so lambda is also
+  checked against the eigenvector's Rayleigh quotient (such stalls put a line onto itself up to 2e-5 off).
 - ``"svd"``: the textbook SVD with ``Z = diag(1, 1, sign det(U V^T))``.
 
 Optional point ``weights`` give Umeyama's weighted problem (weighted centroids, covariance and scale
@@ -42,6 +44,10 @@ CHUNK_PAIRS = 8192
 RESIDUAL_ELEMENTS = 1 << 18  # (rows x T2 x 3 x K) residual entries at once: about 2 MB, cache-resident
 ILL_CONDITIONED = 1e-8  # top adjugate diagonal below this x bound^3: eigenvalue gap too small -> SVD
 NEWTON_RESIDUAL = 1e-8  # |f(lambda)| above this x |S|_F^4 after Newton: not a root -> SVD (rounding is ~1e-15)
+# |q^T (N - lambda I) q| above this x bound x |q|^2: lambda is not the eigenvalue of the eigenvector q -> SVD. Near a
+# double top root f ~ (lambda - root)^2, so f's test lets Newton's stalls of up to ~1e-4 x bound through; this one
+# sees the gap itself (a converged lambda is good to ~NEWTON_TOLERANCE: 10x below this).
+EIGENPAIR_RESIDUAL = 1e-11
 
 
 @dataclass(frozen=True)
@@ -155,7 +161,16 @@ def _rotation_quaternion(cov: torch.Tensor, upper: torch.Tensor) -> tuple[torch.
     ill |= ((lam2 + q2) * lam2 + q1 * lam + q0).abs() > NEWTON_RESIDUAL * 0.25 * q2 * q2
     lower = torch.maximum(torch.maximum(horn[0][0], horn[1][1]), torch.maximum(horn[2][2], horn[3][3]))
     ill |= lam < lower - tolerance
-    norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt()
+    # ... or lambda is not q's Rayleigh quotient (a stall just below a double root: q is right, lambda is not).
+    # Evaluated as the quadratic form, not as f(lambda) q_k (equal in exact arithmetic): f's cancellation hides
+    # stalls below ~1e-8.
+    squared = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+    off = (shifted[0][1] * q[1] + shifted[0][2] * q[2] + shifted[0][3] * q[3]) * q[0] \
+        + (shifted[1][2] * q[2] + shifted[1][3] * q[3]) * q[1] + shifted[2][3] * q[2] * q[3]
+    quadratic = (shifted[0][0] * q[0] * q[0] + shifted[1][1] * q[1] * q[1] + shifted[2][2] * q[2] * q[2]
+                 + shifted[3][3] * q[3] * q[3] + 2.0 * off)
+    ill |= quadratic.abs() > EIGENPAIR_RESIDUAL * upper * squared
+    norm = squared.sqrt()
     zero = norm == 0  # a zero covariance: every rotation is optimal, take the identity
     inv = 1.0 / torch.where(zero, torch.ones_like(norm), norm)
     w, x, y, z = (torch.where(zero, torch.ones_like(norm), q[0] * inv), q[1] * inv, q[2] * inv, q[3] * inv)
