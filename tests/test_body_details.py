@@ -588,3 +588,117 @@ def test_expressions_are_flames_directions_300_to_400_even_when_the_file_has_mor
     shapes = np.moveaxis(fl["shapedirs"][:, :, :20], -1, 0) * flame_share
     np.testing.assert_allclose(data.identity_dirs[10:][:, corr], shapes, atol=1e-7)
     assert not data.face_dirs[:, V:].any()  # teeth: no expressions
+
+
+# ------------------------------------------------------------------------------------------------ small helpers
+def test_euler_angles_become_the_6d_columns_of_the_same_rotation():
+    from m3t.body.rotations import euler_to_6d
+
+    angles = torch.tensor([[0.0, 0.0, torch.pi / 2], [0.3, -0.2, 0.1]])
+    out = euler_to_6d(angles)
+    assert out.shape == (2, 6)
+    # A quarter turn about z: the first column is the y axis, the second minus the x axis.
+    torch.testing.assert_close(out[0], torch.tensor([0.0, 1.0, 0.0, -1.0, 0.0, 0.0]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(out[1], matrix_to_6d(roma.euler_to_rotmat("XYZ", angles[1])), atol=1e-6, rtol=0)
+    zyx = euler_to_6d(angles[1], convention="ZYX")
+    torch.testing.assert_close(zyx, matrix_to_6d(roma.euler_to_rotmat("ZYX", angles[1])), atol=1e-6, rtol=0)
+
+
+def test_skeleton_graph_rejects_an_edge_from_a_joint_to_itself():
+    with pytest.raises(ValueError, match=r"skeleton 'loop': edges \[\(1, 1\)\] are not \(i, j\) with 0 <= i < j < 3"):
+        SkeletonGraph("loop", ("body:neck", "body:nose", "face:4"), ((0, 1), (1, 1)))
+
+
+def test_holistic_points_reject_an_array_whose_point_count_differs_from_the_names():
+    from m3t.body.skeleton import holistic_points
+
+    graph = SkeletonGraph("g", ("body:nose",), ())
+    names = ["pose:nose", "pose:left_eye"]
+    with pytest.raises(ValueError, match=r"expected \(T, 2, 3\) for 2 names, got \(4, 3, 3\)"):
+        holistic_points(np.zeros((4, 3, 3)), names, graph)
+    with pytest.raises(ValueError, match=r"expected \(T, 2, 3\) for 2 names, got \(4, 2, 2\)"):
+        holistic_points(np.zeros((4, 2, 2)), names, graph)
+    with pytest.raises(ValueError, match=r"got \(2, 3\)"):
+        holistic_points(np.zeros((2, 3)), names, graph)
+    points = np.arange(24, dtype=float).reshape(4, 2, 3)
+    np.testing.assert_array_equal(holistic_points(points, names, graph), points[:, :1])
+
+
+def test_smplfx_checkpoints_hold_no_model_geometry(fx):
+    """The template, blend shapes and kinematic tree are rebuilt from the licensed model files, never saved."""
+    state = fx.state_dict()
+    assert fx.pose_dirs.numel() > 0 and fx.parents.numel() > 0
+    assert "pose_dirs" not in state and "parents" not in state
+    assert not any(t.numel() > 1000 for t in state.values())
+
+
+def test_missing_licensed_files_are_listed_with_their_setting_source_and_the_way_out(fx_files, tmp_path):
+    from m3t.body.smplfx_build import SMPLFXFilesMissing
+
+    files = SMPLFXFiles(fx_files.smplx, tmp_path / "generic_model.pkl", fx_files.correspondence, tmp_path / "lids")
+    with pytest.raises(SMPLFXFilesMissing) as info:
+        files.check()
+    message = str(info.value)
+    assert message.startswith("body.model 'smplfx' is built from licensed model files; missing:\n")
+    assert f"  - body.flame_path = {tmp_path / 'generic_model.pkl'}: not found. Get FLAME 2020" in message
+    assert f"  - body.eyelids_path = {tmp_path / 'lids'}: not found. Get optional:" in message
+    assert "body.smplx_path" not in message and "body.flame_correspondence_path" not in message
+    assert message.endswith("\nRegister and accept each licence on those sites, place the files there (or change the "
+                            "paths in the body section of params.yaml), or use body.model: anny (embedded, open).")
+    SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence).check()  # no eyelids: optional
+
+
+def test_all_300_flame_shape_directions_may_be_used_but_no_more(fx_files):
+    files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence)
+    assert build_smplfx(files, flame_shape_dims=300).identity_dirs.shape[0] == 310
+    for bad in (301, -1):
+        with pytest.raises(ModelFileError, match=rf"FLAME 2020 has 300 shape \+ 100 expression directions; "
+                                                 rf"found \d+ \(flame_shape_dims={bad}\)"):
+            build_smplfx(files, flame_shape_dims=bad)
+
+
+def test_smplfx_names_the_landmark_sets_it_has_when_one_is_unknown(fx):
+    with pytest.raises(FileNotFoundError) as info:
+        fx.correspondence("openpose")
+    assert str(info.value) == ("no landmark correspondence smplfx_openpose.json for body model 'smplfx'; available: "
+                               "['mediapipe_holistic']")
+
+
+def test_smplfx_body_passes_its_alignment_to_the_build(fx_files):
+    files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence)
+    with pytest.raises(ValueError, match="alignment 'nose' unknown; use 'eyes' or 'mean'"):
+        SMPLFXBody(files, alignment="nose")
+
+
+def test_eyelid_buffers_read_from_one_npz_file_equal_the_two_npy_files(fx_files, tmp_path):
+    """Pixel3DMM / VHAP ship ``l_eyelid.npy`` and ``r_eyelid.npy``; an ``.npz`` holding both keys is read the same."""
+    lids = {side: np.load(fx_files.eyelids / f"{side}_eyelid.npy") for side in ("l", "r")}
+    np.savez(tmp_path / "eyelids.npz", l_eyelid=lids["l"], r_eyelid=lids["r"])
+    from_dir = build_smplfx(SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence, fx_files.eyelids))
+    from_npz = build_smplfx(SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence,
+                                        tmp_path / "eyelids.npz"))
+    np.testing.assert_array_equal(from_npz.face_dirs[100:], from_dir.face_dirs[100:])
+    assert np.abs(from_npz.face_dirs[100:]).max() > 0
+    np.savez(tmp_path / "one_lid.npz", l_eyelid=lids["l"])
+    with pytest.raises(ModelFileError, match=r"one_lid\.npz.*r_eyelid"):
+        build_smplfx(SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence, tmp_path / "one_lid.npz"))
+
+
+def test_the_body_factory_reads_the_eyelids_setting_and_names_an_unknown_model(fx_files, tmp_path):
+    from m3t.body.config import BodyConfig
+    from m3t.body.factory import load_body_model
+    from m3t.body.smplfx_build import SMPLFXFilesMissing
+
+    cfg = BodyConfig(model="smplfx", smplx_path=str(fx_files.smplx), flame_path=str(fx_files.flame_npz),
+                     flame_correspondence_path=str(fx_files.correspondence), eyelids_path=str(tmp_path / "lids"))
+    with pytest.raises(SMPLFXFilesMissing, match=r"body\.eyelids_path = .*lids: not found"):
+        load_body_model(cfg)
+    with pytest.raises(ValueError, match="body.model 'smpl' unknown; allowed: anny, smplfx"):
+        load_body_model(BodyConfig(model="smpl"))
+
+
+def test_anny_exposes_its_mesh_faces_over_its_template_vertices(body):
+    faces = body.faces
+    assert isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] in (3, 4) and len(faces) > 1000
+    assert np.issubdtype(faces.dtype, np.integer)
+    assert faces.min() == 0 and faces.max() == body.template.shape[0] - 1

@@ -1548,3 +1548,193 @@ def test_the_quality_picture_is_a_small_png_written_where_asked(tmp_path):
     assert header[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
     assert (width, height) == (800, 320)  # 10 x 4 inches at 80 dpi: light enough for every run's artifacts
+
+
+# ------------------------------------------------------------------------------------------ run results
+def test_the_run_summary_counts_clips_and_averages_fit_metrics_of_fitted_clips_only():
+    from m3t.fitting.report import summarise
+
+    outcomes = [
+        ClipOutcome("a", "train", "fitted", frames=10, metrics={"fit_px": 2.0, "reproj_px_parts": 9.0}),
+        ClipOutcome("b", "dev", "cached", frames=30, metrics={"fit_px": 4.0, "pa_mm": float("nan")}),
+        ClipOutcome("c", "train", "fitted", frames=5, metrics={"fit_px": 9.0, "reproj_shoulder_frac": 0.1}),
+        ClipOutcome("q", "train", "quarantined", frames=99, metrics={"fit_px": 1000.0}),
+    ]
+    assert summarise(outcomes) == {"clips_total": 4, "clips_fitted": 3, "clips_quarantined": 1, "frames": 45,
+                                   "fit_px_mean": 5.0, "fit_px_median": 4.0}
+    assert summarise([]) == {"clips_total": 0, "clips_fitted": 0, "clips_quarantined": 0, "frames": 0}
+
+
+def test_consolidate_creates_a_nested_shards_folder_and_writes_every_split(tmp_path):
+    from m3t.corpora.base import SPLITS
+    from m3t.fitting.report import consolidate
+    from m3t.fitting.imports import ImportSettings
+
+    layout = ImportSettings("smplfx", 100).layout("keypoints", 6)
+    out = tmp_path / "data" / "shards" / "synthetic"
+    outcomes = [ClipOutcome("q", "train", "quarantined", reason="ValueError: bad", group="ValueError",
+                            file="motion/q.npz")]
+    report = consolidate(outcomes, layout, out, "synthetic", 1.0)
+    assert set(report.shards) == set(SPLITS) and all(Path(p).parent == out for p in report.shards.values())
+    assert sorted(p.name for p in out.glob("*.parquet")) == sorted(f"{s}.parquet" for s in SPLITS)
+    (out / "holdout.parquet").write_bytes((out / "train.parquet").read_bytes())  # a split of an older run
+    consolidate(outcomes, layout, out, "synthetic", 1.0)
+    assert sorted(p.name for p in out.glob("*.parquet")) == sorted(f"{s}.parquet" for s in SPLITS)
+    assert [json.loads(line) for line in (out / "quarantine.jsonl").read_text().splitlines()] == [
+        {"clip_id": "q", "split": "train", "file": "motion/q.npz", "row": None, "reason": "ValueError: bad",
+         "group": "ValueError"}]
+    assert json.loads((out / "summary.json").read_text())["clips_quarantined"] == 1
+
+
+def test_quality_json_keys_are_sorted_so_identical_results_give_identical_bytes(tmp_path):
+    from m3t.atomic import write_text
+    from m3t.fitting.quality import QualityReport, write_quality
+
+    _, json_path = write_quality(QualityReport([], {"zeta": 1, "alpha": float("inf"), "mid": "x"}), tmp_path,
+                                 write_text)
+    assert json_path.read_text() == '{\n  "alpha": null,\n  "mid": "x",\n  "zeta": 1\n}\n'
+
+
+def test_a_quality_row_without_a_file_or_row_leaves_both_cells_empty():
+    from m3t.fitting.quality import quality_report
+
+    report = quality_report([ClipOutcome("q", "train", "quarantined", reason="boom", group="RuntimeError"),
+                             ClipOutcome("r", "dev", "quarantined", reason="bad row", file="index.csv", row=0)], "x")
+    q, r = report.rows
+    assert (q["file"], q["row"], q["reason"], q["group"], q["split"]) == ("", "", "boom", "RuntimeError", "train")
+    assert (r["file"], r["row"], r["group"]) == ("index.csv", 0, "")
+
+
+def test_a_one_frame_fused_initialisation_shares_its_single_frame_fully():
+    from m3t.fitting.fusion import HELD, REST, FusedInit, describe
+
+    fused = FusedInit(init={"body": np.zeros((1, 3)), "face": np.zeros((1, 2))},
+                      source={"body": np.array([0]), "face": np.array([REST])},
+                      stream_names={"body": ("nlf",), "face": ("pixel3dmm",)}, identity=None, outside={"nlf": 2})
+    d = describe(fused)
+    assert (d["init_share_tracker_body"], d["init_share_nlf_body"], d["init_share_rest_body"]) == (1.0, 1.0, 0.0)
+    assert (d["init_share_rest_face"], d["init_share_tracker_face"], d["init_share_pixel3dmm_face"]) == (1.0, 0.0, 0.0)
+    assert d["init_outside_frames_nlf"] == 2.0 and d["init_source"] == "fused: nlf"
+    held = describe(FusedInit(init={"body": np.zeros((2, 3))}, source={"body": np.array([HELD, HELD])},
+                              stream_names={"body": ("nlf",)}, identity=None))
+    assert held["init_share_held_body"] == 1.0 and held["init_source"].startswith("rest pose: no external tracker est")
+
+
+def test_an_slt_clip_without_a_recorded_width_is_refused_beside_the_common_width():
+    from m3t.fitting.imports import ImportSettings, plan_import
+
+    clips = [Clip(cid, "slt", "train", "de", "s1", "", "", f"train.pkl#{i}", 25.0, extra=extra)
+             for i, (cid, extra) in enumerate([("a", (("dims", "6"),)), ("b", (("dims", "6"),)), ("c", ()),
+                                              ("d", (("dims", "9"),))])]
+    layout, keep, refused = plan_import("keypoints", ImportSettings("smplfx", 100), clips)
+    assert [c.id for c in keep] == ["a", "b"] and sum(layout.dims.values()) == 6
+    assert [(o.clip_id, o.status, o.group, o.file) for o in refused] == [
+        ("c", "quarantined", "other sign width", "train.pkl#2"),
+        ("d", "quarantined", "other sign width", "train.pkl#3")]
+    assert refused[0].reason == ("sign has None values per frame; 2 of the corpus' clips have 6 and a shard holds "
+                                 "one layout")
+    assert refused[1].reason.startswith("sign has 9 values per frame; 2 of")
+
+
+def test_a_modality_without_tracker_streams_has_no_frames():
+    from m3t.fitting.config import FusionConfig
+    from m3t.fitting.fusion import fuse_modality
+
+    values, source = fuse_modality([], np.zeros(6), True, FusionConfig())
+    assert values.shape == (0, 6) and values.dtype == np.float32 and source.shape == (0,)
+
+
+def test_a_face_tracker_can_write_an_identity_with_a_single_flame_shape_coefficient():
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import _target_problem
+    from m3t.fitting.imports import face_layout
+
+    assert _target_problem(face_layout(1), "pixel3dmm", "identity") is None
+    assert _target_problem(smplfx_layout(1), "nlf", "identity") is None
+    problem = _target_problem(face_layout(0), "pixel3dmm", "identity")
+    assert problem.startswith("identity ") and problem.endswith("has no FLAME shape 'flame_shape_<iii>'")
+    assert _target_problem(face_layout(1), "pixel3dmm", "face") is None
+    assert _target_problem(face_layout(1), "nlf", "body") == "the layout has no 'body' modality"
+
+
+def test_reprojection_loss_weighs_each_part_by_its_own_confidence_even_when_it_is_small():
+    from m3t.fitting.fit import reprojection_loss
+
+    pred = torch.zeros(2, 3, 2)
+    target = torch.zeros(2, 3, 2)
+    target[:, 0, 0] = 2.0  # part 1: 4 px^2 at every confident point
+    target[:, 2, 1] = 3.0  # part 2: 9 px^2
+    conf = torch.tensor([[1.0, 1.0, 0.25], [1.0, 0.0, 0.25]])
+    parts = [slice(0, 2), slice(2, 3), slice(1, 2)]
+    # part 1: (4 + 4) / 3 over its confidence 3; part 2: 9 at total confidence 0.5; part 3: no error
+    assert reprojection_loss(pred, target, conf, parts).item() == pytest.approx((8 / 3 + 9 + 0) / 3)
+    unseen = conf.clone()
+    unseen[:, 2] = 0.0  # a part nobody saw is left out, not counted as zero error
+    assert reprojection_loss(pred, target, unseen, parts).item() == pytest.approx((8 / 3 + 0) / 2)
+
+
+def test_the_run_log_names_the_corpus_variant_and_draws_each_fit_against_its_truth(tmp_path, monkeypatch):
+    """``log_fit_corpus`` with the MLflow run, the shard reader and the pictures replaced by recorders."""
+    import contextlib
+    from types import SimpleNamespace
+
+    import m3t.experiment as experiment
+    import m3t.fitting.report as report_module
+    import m3t.render.mesh as mesh
+    import m3t.render.skeleton as skeleton
+
+    calls: dict[str, list] = {"start": [], "compare": [], "mesh": [], "artifacts": []}
+
+    class FakeRun:
+        run_id = "run-1"
+
+        def log_params(self, params): pass
+
+        def log_metrics(self, metrics): pass
+
+        def log_table(self, path, name): pass
+
+        def log_artifact(self, path, folder=None):
+            calls["artifacts"].append((Path(path).name, folder))
+
+    @contextlib.contextmanager
+    def start_run(exp, stage, tags=None, variant=None):
+        calls["start"].append((exp, stage, tags, variant))
+        yield FakeRun()
+
+    clip = Clip("s0-a", "synthetic", "train", "ISO-SYN", "s0", "", "", "motion/s0-a.npz", 25.0)
+    fitted = SimpleNamespace(clip=clip, camera={"f": 1.0}, params={"body": np.zeros((4, 6))},
+                             identity=np.zeros(6), num_frames=4)
+    monkeypatch.setattr(experiment, "start_run", start_run)
+    monkeypatch.setattr(report_module, "read_shard", lambda part: SimpleNamespace(clips=[fitted]))
+    monkeypatch.setattr(report_module, "plot_quality", lambda quality, path: Path(path))
+    monkeypatch.setattr(skeleton, "render_fit_comparison",
+                        lambda body, fit, truth, image: calls["compare"].append((fit.clip.id, truth)) or image)
+    monkeypatch.setattr(mesh, "log_fitted_frame",
+                        lambda run, body, params, identity, frame, folder, camera, stem: calls["mesh"].append(
+                            (frame, camera, stem)))
+    report = report_module.FitCorpusReport(shards={}, outcomes=[ClipOutcome("s0-a", "train", "fitted", "p.parquet")],
+                                           summary={}, quality={"clips_listed": 1, "corpus": "synthetic"},
+                                           run_stats={})
+    truths = {"s0-a": ("truth-params", "truth-identity", "truth-camera")}
+    body = SimpleNamespace(name="anny")
+    assert report_module.log_fit_corpus("exp", {}, report, body, "synthetic", tmp_path, tmp_path / "cache", 1,
+                                        lambda c: truths[c.id]) == "run-1"
+    assert calls["start"] == [("exp", "fit-corpus", {"corpus": "synthetic", "body_model": "anny"}, "synthetic")]
+    assert calls["compare"] == [("s0-a", truths["s0-a"])] and calls["mesh"] == [(2, {"f": 1.0}, "s0-a")]
+    assert ("s0-a.png", "fit_vs_ground_truth") in calls["artifacts"]
+    calls["compare"].clear()
+    report_module.log_fit_corpus("exp", {}, report, body, "synthetic", tmp_path, tmp_path / "cache", 1)
+    assert calls["compare"] == [("s0-a", None)]  # no truth to draw: the fit alone
+
+
+def test_the_progress_bar_counts_the_quarantined_clips_as_they_come(tmp_path, capsys):
+    from m3t.fitting.corpus import run_fit_corpus
+
+    ctx = slt_ctx(tmp_path, cfx.build_slt_import(tmp_path / "slt").root)
+    report = run_fit_corpus(ctx.job, progress=True, ctx=ctx)
+    quarantined = sum(o.status == "quarantined" for o in report.outcomes)
+    assert quarantined > 0
+    err = capsys.readouterr().err
+    assert "fit-corpus slt_pickle" in err and f"quarantined={quarantined}" in err
+

@@ -475,3 +475,42 @@ def test_collinear_frames_align_onto_themselves_exactly_in_both_solvers():
         # ... and the cost between different lines is the SVD's
         np.testing.assert_allclose(kernels.pa_cost_matrix(line[:6], line[6:12]),
                                    [[ref_pa(p, g) for g in line[6:12]] for p in line[:6]], atol=1e-9, rtol=0)
+
+
+def test_a_bad_side_of_a_pair_is_named_with_its_pair_region_and_shape():
+    good = {"body": np.zeros((4, 12, 3))}
+    wrong = {"body": np.zeros((4, 12, 2))}
+    message = r"^pair 1, region 'body', prediction: shape \(4, 12, 2\), expected \(T, K, 3\) points in metres$"
+    with pytest.raises(ValueError, match=message):
+        evaluate_pairs([(good, good), (wrong, good)])
+    with pytest.raises(ValueError, match=r"^pair 0, region 'body', ground truth: shape \(4, 12, 2\), expected"):
+        evaluate_pairs([(good, wrong)])
+    with pytest.raises(ValueError, match=r"^pair 0, region 'body', prediction: empty sequence of shape \(0, 12, 3\)"):
+        evaluate_pairs([({"body": np.zeros((0, 12, 3))}, good)])
+
+
+def test_cost_kernels_name_the_job_and_both_shapes_of_a_malformed_pair():
+    from m3t.metrics import kernels
+
+    pred, gt = np.zeros((3, 5, 3)), np.zeros((4, 6, 3))
+    message = r"^job 1: pred \(3, 5, 3\) and gt \(4, 6, 3\) must be non-empty \(T1, K, 3\) and \(T2, K, 3\)$"
+    with pytest.raises(ValueError, match=message):
+        kernels.dtw_jobs([kernels.CostJob(gt, gt, False), kernels.CostJob(pred, gt, True)], threads=1)
+    with pytest.raises(ValueError, match=r"^job 0: pred \(0, 5, 3\) and gt \(4, 5, 3\) must be non-empty"):
+        kernels.pa_cost_matrix(np.zeros((0, 5, 3)), np.zeros((4, 5, 3)))
+
+
+def test_slt_scores_chinese_by_character_and_every_other_language_by_word():
+    from m3t.metrics.text import slt_unit
+
+    assert [slt_unit(lang) for lang in ("zh", "CSL", "CSL-SYN")] == ["char"] * 3
+    assert [slt_unit(lang) for lang in ("de", "en", "DGS")] == ["word"] * 3
+
+
+def test_bleu_on_jieba_words_counts_each_word_as_one_token():
+    """A jieba word such as ``C++`` is one token: 5 of 6 words match, every higher order loses one n-gram."""
+    from m3t.metrics.text import bleu4
+
+    hyp, ref = "C++ 明天 北方 下雨 南方 晴朗", "C 明天 北方 下雨 南方 晴朗"
+    assert bleu4([hyp], [ref], method="zh") == pytest.approx(100 * (5 / 6 * 4 / 5 * 3 / 4 * 2 / 3) ** 0.25)
+    assert bleu4([ref], [ref], method="zh") == pytest.approx(100.0)

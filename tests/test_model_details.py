@@ -972,3 +972,127 @@ def test_smlm_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_asked(
     # another rank (here without a process group, so no epoch is run: a rank's share needs its peers)
     result, err = train("rank1", dist_ctx=DistributedContext(rank=1), stop_after_epochs=0)
     assert result.history == [] and "smlm" not in err, "only rank 0 draws the bar"
+
+
+# ------------------------------------------------------------------------------------------------ quantisers, steps
+def test_generation_refuses_an_empty_batch_and_unmatched_languages_before_touching_the_model():
+    from m3t.smlm.generate import generate_motion, translate
+    from m3t.smlm.vocab import VocabularyError
+
+    class _Vocab:
+        def check_language(self, language):
+            if language != "DGS":
+                raise VocabularyError(f"unknown language {language!r}")
+
+    for run in (generate_motion, translate):
+        with pytest.raises(VocabularyError, match="^nothing to generate: the input list is empty$"):
+            run(None, _Vocab(), [], [])
+        with pytest.raises(ValueError, match="^2 inputs but 1 languages; give one language per input$"):
+            run(None, _Vocab(), ["a", "b"], ["DGS"])
+        with pytest.raises(VocabularyError, match="unknown language 'BSL'"):
+            run(None, _Vocab(), ["a", "b"], ["DGS", "BSL"])
+
+
+def test_steps_per_epoch_split_whole_batches_evenly_across_ranks():
+    from m3t.smlm.train import steps_per_epoch
+
+    assert steps_per_epoch(10, 3) == 4 and type(steps_per_epoch(10, 3)) is int
+    assert steps_per_epoch(10, 3, world_size=1) == 4
+    out = steps_per_epoch(10, 3, world_size=3)
+    assert out == 1 and type(out) is int  # 4 batches over 3 ranks: each rank runs 1 step
+    assert steps_per_epoch(12, 3, world_size=2) == 2 and type(steps_per_epoch(12, 3, world_size=2)) is int
+    assert steps_per_epoch(0, 3) == 0
+
+
+def test_batch_perplexity_is_the_exponential_of_the_code_entropy():
+    from m3t.tokenizers.fsq import batch_perplexity
+
+    assert batch_perplexity(torch.tensor([0, 1, 2, 3]), 8).item() == pytest.approx(4.0)
+    assert batch_perplexity(torch.tensor([[5, 5], [5, 5]]), 8).item() == pytest.approx(1.0)
+    # p = (3/4, 1/4): exp(-(3/4 ln 3/4 + 1/4 ln 1/4))
+    expected = float(np.exp(-(0.75 * np.log(0.75) + 0.25 * np.log(0.25))))
+    assert batch_perplexity(torch.tensor([1, 1, 1, 6]), 8).item() == pytest.approx(expected, rel=1e-5)
+    assert batch_perplexity(torch.zeros(0, dtype=torch.long), 8).item() == pytest.approx(1.0)
+
+
+def test_fsq_refuses_bad_levels_keeps_no_state_and_names_a_channel_mismatch():
+    from m3t.tokenizers.fsq import FSQ
+
+    for bad in ((), (5, 1), (1,), (0, 4)):
+        with pytest.raises(ValueError, match=re.escape(f"FSQ levels must be integers >= 2, got {bad}")):
+            FSQ(bad)
+    fsq = FSQ((5, 4, 3))
+    assert fsq.codebook_size == 60 and fsq.dim == 3
+    assert fsq.state_dict() == {}  # everything is rebuilt from the levels in the config
+    fsq.load_state_dict({})  # an old checkpoint without buffers loads
+    with pytest.raises(ValueError, match=r"^FSQ with 3 levels got latents with 2 channels$"):
+        fsq(torch.zeros(4, 7, 2))
+    out = fsq(torch.zeros(4, 7, 3))
+    assert out.indices.shape == (4, 7)
+
+
+def test_vq_names_its_code_dim_and_the_latents_channels_on_a_mismatch():
+    from m3t.tokenizers.vq import EMAResetVQ
+
+    vq = EMAResetVQ(8, 4)
+    with pytest.raises(ValueError, match=r"^VQ with code dim 4 got latents with 3 channels$"):
+        vq(torch.zeros(2, 5, 3))
+
+
+def test_tokenizer_training_refuses_a_window_the_downsampling_does_not_divide(tmp_path):
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), window=model_cfg.downsample * 3 + 1, device="cpu")
+    message = (f"tokenizer_train.window ({cfg.window}) must be a multiple of the downsampling factor "
+               f"{model_cfg.downsample}")
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        train_tokenizer("face", model_cfg, cfg, [np.zeros((16, 3), dtype=np.float32)], None, "v")
+    assert not any(tmp_path.iterdir())  # refused before anything is written
+
+
+def test_only_the_main_rank_records_and_saves_a_tokenizer_run(tmp_path):
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "rank1"), epochs=1, warmup_epochs=1, batch_size=4, window=8,
+                               windows_per_clip=1, device="cpu")
+    result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", dist_ctx=DistributedContext(rank=1),
+                             progress=False)
+    assert result.history == [] and not result.best
+    assert not result.best_path.exists() and not result.last_path.exists()
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "rank0"), epochs=1, warmup_epochs=1, batch_size=4, window=8,
+                               windows_per_clip=1, device="cpu")
+    result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", progress=False)
+    assert [sorted(k for k in r if k.startswith("train_recon")) for r in result.history] == [["train_recon_mse"]]
+    assert result.best_path.exists() and result.last_path.exists()
+
+
+def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp_path):
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    class _Probe:  # stands in for the reconstruction probe: a fixed vertex error per evaluation
+        def __init__(self):
+            self.values = iter([1.0, 9.0, 9.0])
+
+        def measure(self, model):
+            return {"vpe_mm": next(self.values)}
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=3, warmup_epochs=1, batch_size=4, window=8,
+                               windows_per_clip=1, eval_every=1, device="cpu")
+    result = train_tokenizer("face", model_cfg, cfg, seqs, _Probe(), "v", progress=False)
+    assert [r["val_vpe_mm"] for r in result.history] == [1.0, 9.0, 9.0]
+    assert result.best["epoch"] == 1 and result.best["val_vpe_mm"] == 1.0
+    # the training loss went down after the first epoch, yet the validation error decides
+    assert min(r["train_recon_mse"] for r in result.history) < result.history[0]["train_recon_mse"]

@@ -18,7 +18,7 @@ import json
 import os
 import pickle
 import shutil
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pyarrow as pa
@@ -46,6 +46,7 @@ from m3t.corpora.csl_daily import CslDailyCorpus
 from m3t.corpora.fingerspelling import (
     FingerspellingConfig,
     FingerspellingCorpus,
+    concatenate,
     lexicon_root,
     resample,
     spelled_paths,
@@ -1009,3 +1010,191 @@ def test_sentences_have_as_many_glosses_as_asked_in_each_word_order():
                 assert text and (text.endswith("。") if language == "CSL-SYN" else text[0].isupper())
     _, gloss = make_sentence(signs, "ASL-SYN", 4, np.random.default_rng(3))
     assert [CONCEPTS[g][0] for g in gloss] == ["time", "thing", "person", "verb"]
+
+
+# ----------------------------------------------------------------------------------------- split rows and errors
+def test_csl_daily_split_rows_without_name_or_split_are_quarantined_and_clips_carry_the_corpus_name(tmp_path):
+    """Rows of ``sentence_label/split_1.txt`` (``name|split``, see ``build_csl_daily``) with one half empty."""
+    fx.build_csl_daily(tmp_path)
+    split_file = tmp_path / "sentence_label" / "split_1.txt"
+    lines = split_file.read_text(encoding="utf-8").splitlines()
+    split_file.write_text("\n".join(lines + ["|train", "S100009_P0000_T00|", "a|b|test"]) + "\n", encoding="utf-8")
+    corpus = CslDailyCorpus(tmp_path)
+    out = Collector(tmp_path)
+    splits = corpus.read_splits(out)
+    assert "" not in splits and "S100009_P0000_T00" not in splits and splits["S000004_P0000_T00"] == ("dev", 6)
+    n = len(lines)
+    assert out.listing().quarantined[-3:] == (
+        Quarantined("sentence_label/split_1.txt", n + 1, None,
+                    "malformed row: expected '<name>|<split>', found '|train'"),
+        Quarantined("sentence_label/split_1.txt", n + 2, "S100009_P0000_T00",
+                    "split '' unknown; expected one of train, dev, test"),
+        Quarantined("sentence_label/split_1.txt", n + 3, None,
+                    "malformed row: expected '<name>|<split>', found 'a|b|test'"))
+    listing = corpus.listing()
+    assert {c.corpus for c in listing.clips} == {"csl_daily"} and len(listing.clips) == 6
+
+
+def test_smplx_clip_folders_without_usable_frames_are_refused_naming_the_folder(tmp_path):
+    empty = tmp_path / "train" / "empty_clip"
+    empty.mkdir(parents=True)
+    with pytest.raises(SmplxSequenceError) as err:
+        load_smplx_sequence(empty)
+    assert (str(err.value), err.value.file, err.value.key) == (
+        f"{empty}: missing media (no <frame>.pkl files)", empty, None)
+    (empty / "frame.pkl").write_bytes(b"")
+    with pytest.raises(SmplxSequenceError) as err:
+        load_smplx_sequence(str(empty))
+    assert str(err.value).startswith(f"{empty}: frame pickle frame.pkl has no frame number (expected <n>.pkl")
+    assert (err.value.file, err.value.key) == (empty, None)
+
+
+def test_soke_annotation_errors_name_the_file_and_malformed_rows_are_quarantined(tmp_path):
+    fx.build_soke(tmp_path, "phoenix")
+    corpus = SokeSmplxCorpus(tmp_path, SokeSmplxConfig(annotation="notes.csv"))
+    with pytest.raises(CorpusError) as err:
+        corpus.read_annotation(Collector(tmp_path))
+    assert str(err.value) == (f"{tmp_path / 'notes.csv'} not found. Set corpora.soke_smplx.annotation to a CSV with "
+                              f"columns id,text[,gloss,signer,language,split].")
+    (tmp_path / "notes.csv").write_text("id,text\n,no id\nb1,hello,extra\nb1,ok\nb1,again\n", encoding="utf-8")
+    out = Collector(tmp_path)
+    rows = corpus.read_annotation(out)
+    assert rows == {"b1": {"id": "b1", "text": "ok", "row": "4"}}
+    assert out.listing().quarantined == (
+        Quarantined("notes.csv", 2, None, "malformed row: empty id or extra columns"),
+        Quarantined("notes.csv", 3, "b1", "malformed row: empty id or extra columns"),
+        Quarantined("notes.csv", 5, "b1", "id listed twice"))
+    assert SokeSmplxCorpus(tmp_path, SokeSmplxConfig()).read_annotation(out) is None
+
+
+def test_an_slt_clip_whose_record_moved_is_refused_naming_the_file_and_clip(tmp_path):
+    built = fx.build_slt(tmp_path)
+    corpus = SltPickleCorpus(tmp_path)
+    clip = next(c for c in corpus.listing().clips if c.split == "dev")
+    assert corpus.sequence(clip).dtype == np.float32
+    for extra in ((("index", "99"),), (("index", clip.get("index")), ("name", "dev/other"))):
+        moved = Clip(clip.id, clip.corpus, clip.split, clip.language, clip.signer, clip.text, clip.gloss, clip.media,
+                     clip.fps, extra=extra)
+        with pytest.raises(CorpusError) as err:
+            corpus.sequence(moved)
+        index = moved.get("index")
+        assert str(err.value) == (f"{tmp_path / built.extra['files']['dev']}: record {index} is no longer clip "
+                                  f"{clip.id}; list the corpus again")
+
+
+def test_how2sign_clip_folder_option_is_formatted_per_split(tmp_path):
+    from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
+
+    corpus = How2SignCorpus(tmp_path, How2SignConfig(clips_dir="videos/{split}/clips"))
+    assert corpus.clips_dir("val") == PurePosixPath("videos/val/clips")
+    assert corpus.clips_dir("train") == PurePosixPath("videos/train/clips")
+
+
+def test_nmfs_dictionary_glosses_may_hold_spaces(tmp_path):
+    (tmp_path / "dictionary.txt").write_text("0\t打 电话\n1 thank you very much\n", encoding="utf-8")
+    assert NmfsCslCorpus(tmp_path).read_dictionary() == {0: "打 电话", 1: "thank you very much"}
+
+
+def test_media_paths_are_checked_against_the_resolved_root_the_caller_gives(tmp_path):
+    real = tmp_path / "corpus"
+    (real / "clips").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    os.symlink(tmp_path / "elsewhere", real / "out")
+    unresolved = Path("not-a-folder-here")  # its own resolve() would accept every name
+    assert media_path_problem(unresolved, "clips/a.mp4", real.resolve()) is None
+    problem = media_path_problem(unresolved, "out/a.mp4", real.resolve())
+    assert problem.startswith("unsafe media path: 'out/a.mp4' resolves outside the corpus root (to ")
+    assert media_path_problem(real, "out/a.mp4") == problem
+
+
+def test_pose_index_gloss_column_is_read_into_the_clip(tmp_path, ase_rows):
+    shutil.copyfile(lexicon_root() / ase_rows[0]["path"], tmp_path / "a.pose")
+    (tmp_path / "index.csv").write_text("id,path,split,text,language,signer,gloss\n"
+                                        "a,a.pose,dev,hello,ase,s2,HELLO WORLD\n", encoding="utf-8")
+    (clip,) = PoseFileCorpus(tmp_path, PoseFileConfig(index="index.csv")).listing().clips
+    assert (clip.text, clip.gloss, clip.split, clip.corpus) == ("hello", "HELLO WORLD", "dev", "posefile")
+
+
+def test_letter_rows_without_a_path_are_quarantined(tmp_path, ase_letters):
+    _letter_table(tmp_path, ase_letters[:1], (",en,ase,0,100,J,J,0", "  ,en,ase,0,100,K,K,0"))
+    out = Collector(tmp_path)
+    assert [x.letter for x in FingerspellingCorpus(tmp_path).table(out)] == ["A"]
+    malformed = "malformed row: empty signed_language, words or path, or extra columns"
+    assert out.listing().quarantined == (Quarantined("data.csv", 3, None, malformed),
+                                         Quarantined("data.csv", 4, None, malformed))
+
+
+def test_letter_and_word_clips_say_which_they_are(tmp_path, ase_letters):
+    _letter_table(tmp_path, ase_letters)
+    clips = FingerspellingCorpus(tmp_path, FingerspellingConfig(words_per_language=2, max_letters=3)).listing().clips
+    assert [c.get("clip_type") for c in clips] == ["letter"] * 4 + ["spelled"] * 2
+    assert [c.get("media_kind") for c in clips] == ["pose"] * 4 + ["spelled"] * 2
+
+
+def test_letter_clips_with_another_point_layout_anywhere_in_the_word_are_refused():
+    hand = _pose_data(np.zeros((2, 2, 3)), np.ones((2, 2)), 25.0)
+    other = PoseData(np.zeros((3, 2, 3), np.float32), np.ones((3, 2), np.float32), 25.0, (("face", 2),), 640, 480)
+    for parts in ([hand, other], [hand, hand, other]):
+        with pytest.raises(CorpusError) as err:
+            concatenate(parts)
+        assert str(err.value) == ("letter clips have different point layouts (hand:2 vs face:2); they cannot be "
+                                  "concatenated")
+    word = concatenate([hand, hand, hand])
+    assert word.points.shape == (6, 2, 3) and word.confidence.shape == (6, 2) and word.fps == 25.0
+    with pytest.raises(ValueError, match="the word has no letters"):
+        concatenate([])
+
+
+def test_make_corpus_writes_the_generated_clips_and_counts_them_per_split(tmp_path, monkeypatch):
+    import m3t.body.factory as factory
+
+    dev = _tiny_clip(2)
+    dev = synthetic.SyntheticClip(Clip(**{**dev.clip.__dict__, "split": "dev"}), dev.params, dev.identity, dev.camera)
+    made = [_tiny_clip(0), _tiny_clip(1), dev]
+    seen = {}
+    monkeypatch.setattr(factory, "load_body_model", lambda cfg: seen.setdefault("body_cfg", cfg) and "model")
+    monkeypatch.setattr(synthetic, "generate_corpus", lambda cfg, model: seen.update(cfg=cfg, model=model) or made)
+    cfg = SyntheticCorpusConfig()
+    assert synthetic.make_corpus(cfg, "the-body-config", tmp_path / "synthetic") == {
+        "clips": 3, "splits": {"train": 2, "dev": 1}}
+    assert seen == {"body_cfg": "the-body-config", "cfg": cfg, "model": "model"}
+    assert [c.id for c in synthetic.SyntheticCorpus(tmp_path / "synthetic").clips()] == [c.clip.id for c in made]
+
+
+def test_a_performance_scales_speed_and_amplitude_within_the_jitter_and_tilts_each_posture_axis():
+    signer = synthetic.Signer("signer00", np.full(6, 0.5), 1.0, 2.0, np.array([0.1, -0.2, 0.3]))
+    assert synthetic._performance(signer, np.random.default_rng(0), 0.0) is signer
+    rng = np.random.default_rng(5)
+    takes = [synthetic._performance(signer, rng, 0.2) for _ in range(200)]
+    speed = np.array([t.speed for t in takes])
+    amplitude = np.array([t.amplitude for t in takes]) / 2.0
+    for factor in (speed, amplitude):
+        assert 0.8 <= factor.min() < 0.85 and 1.15 < factor.max() <= 1.2
+    offsets = np.stack([t.posture for t in takes]) - signer.posture
+    assert offsets.shape == (200, 3) and np.all(np.abs(offsets) < np.deg2rad(5))
+    assert np.allclose(offsets.std(axis=0), np.deg2rad(1.0), rtol=0.2)
+    assert abs(np.corrcoef(offsets.T)[0, 1]) < 0.3  # each axis tilts on its own
+    assert all(t.id == "signer00" and t.identity is signer.identity for t in takes)
+
+
+def test_sentence_text_follows_each_languages_word_order():
+    signs = build_lexicon(28, 2, np.random.default_rng(0))
+    column = {"ASL-SYN": 1, "DGS-SYN": 2, "CSL-SYN": 3}
+    for language, col in column.items():
+        for length in (2, 3, 4):
+            for seed in range(3):
+                text, gloss = make_sentence(signs, language, length, np.random.default_rng(seed))
+                role = {CONCEPTS[g][0]: CONCEPTS[g][col] for g in gloss}
+                s, v, o, t = (role.get(r) for r in ("person", "verb", "thing", "time"))
+                if language == "ASL-SYN":
+                    words = [s, v, o, t]
+                elif language == "DGS-SYN":
+                    words = [t, v, s, o] if t else [s, v, o]
+                else:
+                    words = [t, s, v, o]
+                words = [x for x in words if x]
+                if language == "CSL-SYN":
+                    assert text == "".join(words) + "。"
+                else:
+                    joined = " ".join(words)
+                    assert text == joined[0].upper() + joined[1:]

@@ -372,3 +372,58 @@ def test_skeleton_clips_pose_every_clip_with_frames_in_order_without_a_progress_
         assert set(s.as_fitted().params) == {SKELETON_STREAM} and s.as_fitted().clip is s.fitted.clip
     skeleton_clips(body, clips[:1], graph, progress=True, desc="skeletons: dev")
     assert "skeletons: dev" in capsys.readouterr().err
+
+
+def test_shards_of_different_body_models_are_refused_naming_both_files(tmp_path, clips):
+    other_dims = ModalityLayout(
+        modalities=(Modality("body", "rotation6d", ("pelvis",)),) + LAYOUT.modalities[1:],
+        identity_labels=LAYOUT.identity_labels,
+    )
+    other_identity = ModalityLayout(modalities=LAYOUT.modalities, identity_labels=("height", "weight"))
+    write_shard(tmp_path / "a.parquet", clips[:2], LAYOUT)
+    narrow = [FittedClip(c.clip, c.key, {**c.params, "body": c.params["body"][:, :6]}, c.identity, c.camera, c.metrics,
+                         c.body_model) for c in clips[2:4]]
+    write_shard(tmp_path / "b.parquet", narrow, other_dims)
+    short = [FittedClip(c.clip, c.key, c.params, c.identity[:2], c.camera, c.metrics, c.body_model) for c in clips[4:]]
+    write_shard(tmp_path / "c.parquet", short, other_identity)
+    with pytest.raises(ValueError) as info:
+        ShardDataset([tmp_path / "a.parquet", tmp_path / "b.parquet"])
+    message = str(info.value)
+    assert "b.parquet: modality 'body' has dim 6, " in message and "a.parquet has 12; " in message
+    assert message.endswith("shards fitted with different body models cannot be mixed")
+    with pytest.raises(ValueError) as info:
+        ShardDataset([tmp_path / "a.parquet", tmp_path / "c.parquet"])
+    message = str(info.value)
+    assert "c.parquet: identity dim 2, " in message and "a.parquet has 4; " in message
+    assert message.endswith("shards fitted with different body models cannot be mixed")
+    # Shards that differ only in a modality left out of the dataset can be read together.
+    assert len(ShardDataset([tmp_path / "a.parquet", tmp_path / "b.parquet"], modalities=["face"])) == 4
+
+
+def test_sampler_length_is_the_whole_number_of_batches_it_yields():
+    for n, batch_size in ((10, 4), (12, 4), (3, 4)):
+        for drop_last in (False, True):
+            sampler = LengthBucketSampler(list(range(1, n + 1)), batch_size=batch_size, drop_last=drop_last)
+            assert len(sampler) == len(list(sampler)) == (n // batch_size if drop_last else -(-n // batch_size))
+
+
+def test_collated_batch_keeps_each_clips_metadata_in_batch_order(tmp_path, clips):
+    write_shard(tmp_path / "a.parquet", clips, LAYOUT)
+    ds = ShardDataset(tmp_path / "a.parquet")
+    items = [ds[i] for i in (3, 0, 5)]
+    batch = collate_motion(items)
+    assert batch.clip_ids == ("clip-0003", "clip-0000", "clip-0005")
+    assert batch.metadata == tuple(item.metadata for item in items)
+    assert [m["extra"]["session"] for m in batch.metadata] == ["3", "0", "5"]
+    with pytest.raises(ValueError, match="collate_motion got an empty batch"):
+        collate_motion([])
+
+
+def test_damaged_layout_metadata_names_the_shard_file():
+    from m3t.shards.schema import LAYOUT_KEY, VERSION_KEY, check_schema_metadata
+
+    version = str(SCHEMA_VERSION).encode()
+    with pytest.raises(ShardFormatError, match=r"^fitted/x\.parquet: cannot parse the m3t\.layout metadata .*damaged"):
+        check_schema_metadata({VERSION_KEY: version, LAYOUT_KEY: b"{not json"}, "fitted/x.parquet")
+    with pytest.raises(ShardFormatError, match=r"^fitted/y\.parquet: no m3t\.schema_version"):
+        check_schema_metadata(None, "fitted/y.parquet")
