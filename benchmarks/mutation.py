@@ -65,6 +65,12 @@ JUSTIFIED_FILE = ROOT / "benchmarks" / "mutation_justified.json"
 TARGETED_FILE = ROOT / "benchmarks" / "mutation_targeted.json"
 
 
+def equivalents(justified: dict[str, str]) -> set[str]:
+    """The justified mutants that change no behaviour (their reason says *equivalent* or *unreachable*), as
+    opposed to those that change only a message's wording or a figure's look, which stay in every rate."""
+    return {name for name, why in justified.items() if why.startswith(("equivalent", "unreachable"))}
+
+
 def wilson(hits: int, n: int, z: float = 1.96) -> tuple[float, float] | None:
     """Wilson score 95% interval of a proportion, in percent."""
     if n == 0:
@@ -109,16 +115,21 @@ def verdicts() -> list[dict]:
     return rows
 
 
-def summary(rows: list[dict], targeted: set[str] = frozenset()) -> dict:
+def summary(rows: list[dict], targeted: set[str] = frozenset(), equivalent: set[str] = frozenset()) -> dict:
     """Counts per module and overall; ``detection_pct`` = (killed + timeout) / every checked mutant. With
     ``targeted`` (mutants whose survival tests were written against), also ``untargeted``: the counts over the
-    mutants of the other functions, and ``targeted``: how many of ``rows`` that leaves out."""
+    mutants of the other functions, and ``targeted``: how many of ``rows`` that leaves out. ``equivalent``: the
+    mutants justified as equivalent (no behaviour differs); ``score_pct`` leaves the surviving ones out of the
+    rate, the mutation score as the literature defines it (detected / non-equivalent mutants)."""
     def counts(subset: list[dict]) -> dict:
         c = collections.Counter(r["status"] for r in subset)
         checked = sum(v for k, v in c.items() if k not in ("not checked", "skipped"))
         detected = sum(c[k] for k in DETECTED)
+        same = sum(r["status"] in SURVIVED and r["name"] in equivalent for r in subset)
         return {"mutants": len(subset), "checked": checked, "killed": c["killed"], "timeout": c["timeout"],
-                "crashed": c["segfault"],
+                "crashed": c["segfault"], "equivalent": same,
+                "score_pct": round(100.0 * detected / (checked - same), 1) if checked - same else None,
+                "score_ci95": wilson(detected, checked - same),
                 "detection_ci95": wilson(detected, checked),
                 "survived": c["survived"], "no_tests": c["no tests"],
                 "other": checked - detected - c["survived"] - c["no tests"],
@@ -159,7 +170,10 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
         if result.get("run_seconds") else "Run time: not measured (report rewritten from stored verdicts).",
         "",
         "*Detected* = killed + timeout + crashed. *Detection* is over every checked mutant; *of tested* leaves out "
-        "the mutants of functions no selected test calls (listed below).",
+        "the mutants of functions no selected test calls (listed below); *score* leaves out the *equivalent* "
+        "survivors, those justified below as changing no behaviour (the mutation score as the literature defines "
+        "it: detected / non-equivalent mutants). Survivors that change only a message's wording or a figure's look "
+        "count as undetected in both rates.",
         "",
         (f"**A seeded random sample** of {result['sample']} of the {result['population']} mutants (seed "
          f"{result['seed']}: the mutants of lowest sha256(seed:name)); each rate carries its Wilson 95% interval."
@@ -167,17 +181,20 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
          f"Every one of the {result['population']} mutants."),
         "",
         "| module | mutants | killed | timeout | crashed | survived | no tests | other | detection % (95% CI) "
-        "| of tested % |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| of tested % | equivalent | score % (95% CI) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     untargeted = [(f"*untargeted*: all but the {result['targeted']} mutants of functions whose survivors got new "
                    "tests", result["untargeted"])] if result.get("targeted") else []
     for name, c in [*result["modules"].items(), ("**all**", total), *untargeted]:
         interval = c["detection_ci95"] if result.get("sample") else None
         ci = f" ({interval[0]}-{interval[1]})" if interval else ""
+        score_interval = c["score_ci95"] if result.get("sample") else None
+        score_ci = f" ({score_interval[0]}-{score_interval[1]})" if score_interval else ""
         lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['crashed']} | {c['survived']} "
                      f"| {c['no_tests']} "
-                     f"| {c['other']} | {c['detection_pct']}{ci} | {c['detection_of_tested_pct']} |")
+                     f"| {c['other']} | {c['detection_pct']}{ci} | {c['detection_of_tested_pct']} "
+                     f"| {c['equivalent']} | {c['score_pct']}{score_ci} |")
     if total["not_checked"]:
         lines += ["", f"**{total['not_checked']} mutants are not checked yet** (the run was stopped): rerun the "
                   "command to finish; the numbers above count checked mutants only."]
@@ -268,7 +285,8 @@ def main(argv: list[str] | None = None) -> dict:
         chosen = set(sample["names"])
         rows = [r for r in rows if r["name"] in chosen]
     targeted = set(json.loads(TARGETED_FILE.read_text())) if TARGETED_FILE.exists() else set()
-    result = summary(rows, targeted)
+    justified = json.loads(JUSTIFIED_FILE.read_text()) if JUSTIFIED_FILE.exists() else {}
+    result = summary(rows, targeted, equivalents(justified))
     result.update({"population": sample["population"] if sample else population,
                    "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None})
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -282,7 +300,8 @@ def main(argv: list[str] | None = None) -> dict:
     write_report(rows, result, out.with_suffix(".md"))
     from report import write_and_log
 
-    flat = {"detection_pct": result["total"]["detection_pct"], "mutants": result["total"]["mutants"],
+    flat = {"detection_pct": result["total"]["detection_pct"], "score_pct": result["total"]["score_pct"],
+            "mutants": result["total"]["mutants"],
             "survived": result["total"]["survived"], "no_tests": result["total"]["no_tests"],
             "run_seconds": result["run_seconds"]}
     flat.update({f"{m}_detection_pct": c["detection_pct"] for m, c in result["modules"].items()})

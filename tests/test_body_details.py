@@ -1,8 +1,9 @@
 """Behaviour details of the body models (m3t.body) that the coarser body, SMPL-FX and skeleton tests do not pin down.
 
 Written to pin behaviours that mutation testing found unchecked: the skeleton graph's validation messages, Anny's
-identity range, reading Python-2 model pickles, SMPL-FX's skinning, depth levels and device handling, and the
-SMPL-FX build steps (neck rings, teeth, 'mean' alignment, head / jaw pose correctives from FLAME, integer faces,
+identity range and rest pose (a freshly built model reproduces its template), reading Python-2 model pickles,
+SMPL-FX's skinning, depth levels and device handling, and the SMPL-FX build steps (neck rings, teeth, 'eyes' and
+'mean' alignments, head / jaw pose correctives from FLAME, integer faces,
 the checks naming a model file that lacks keys or joints, expressions from FLAME's directions 300-400), landmark
 correspondences (Anny's available sets, the neck joint, skeleton graphs, SMPL-FX's resolved table), the body cache
 key and protocol-0/1 pickles with sparse regressors. The SMPL-FX build tests use the synthetic stand-in files of
@@ -702,3 +703,49 @@ def test_anny_exposes_its_mesh_faces_over_its_template_vertices(body):
     assert isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] in (3, 4) and len(faces) > 1000
     assert np.issubdtype(faces.dtype, np.integer)
     assert faces.min() == 0 and faces.max() == body.template.shape[0] - 1
+
+
+def test_a_new_anny_model_reproduces_its_template_mesh_and_skeleton_at_rest(body):
+    """Rest parameters give the template mesh (every vertex, the legs included) and the template skeleton, moved so
+    that the root sits at the origin: every bone starts from its template rotation except the root's, which is
+    the identity (the camera carries the global placement). Built afresh (the Anny model itself is shared with
+    the session's ``body``), so the construction itself is checked."""
+    from m3t.body.anny_body import AnnyBody
+
+    model = AnnyBody()
+    identity = model.default_identity()
+    coeffs = model._identity_coeffs(identity)
+    rest_bones = model._rest_bones(coeffs)[0]
+    root = rest_bones[0, :3, 3]
+    template = model.template + torch.einsum("bn,nvc->bvc", coeffs, model.pheno_bs)[0]
+    out = model.forward(model.rest_params(1), identity)
+    assert float(torch.linalg.norm(out.vertices[0] - (template - root), dim=-1).max()) < 1e-4  # 0.1 mm
+    assert float(torch.linalg.norm(out.joints[0] - (rest_bones[:, :3, 3] - root), dim=-1).max()) < 1e-4
+    leg_bones = ("pelvis", "upperleg", "lowerleg", "foot")
+    legs = [i for i, name in enumerate(model.joint_names) if name.startswith(leg_bones)]
+    assert len(legs) >= 6
+    on_legs = (model.skin_weights * torch.isin(model.skin_bones, torch.tensor(legs))).sum(1) > 0.5
+    assert int(on_legs.sum()) > 1000
+    np.testing.assert_allclose(out.vertices[0, on_legs].numpy(), (template - root)[on_legs].numpy(), atol=1e-4)
+    assert torch.equal(model.base_delta[0], torch.eye(4))
+    # the template's own bone rotations are kept (the pelvis bones are tilted by a few degrees)
+    pelvis = model.joint_names.index("pelvis.L")
+    assert float(torch.linalg.norm(model.base_delta[pelvis, :3, :3] - torch.eye(3))) > 1e-2
+
+
+def test_eye_alignment_puts_the_flame_eyes_midpoint_on_smplx_eyes_on_every_axis(fx_files):
+    """``alignment='eyes'`` (the default): the FLAME head is moved by the displacement of its eyes' midpoint onto
+    SMPL-X's, axis by axis; the built mesh's eye joints (FLAME's rows) then sit on SMPL-X's eyes."""
+    files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence, fx_files.eyelids)
+    data = build_smplfx(files)
+    sx, fl = load_model_arrays(fx_files.smplx), load_model_arrays(fx_files.flame_npz)
+    eyes_sx = (sx["J_regressor"] @ sx["v_template"].astype(np.float64))[[23, 24]].mean(0)
+    eyes_fl = (fl["J_regressor"] @ fl["v_template"].astype(np.float64))[[FLAME_LEFT_EYE, FLAME_RIGHT_EYE]].mean(0)
+    assert np.ptp(eyes_sx) > 0.05 and np.ptp(eyes_sx - eyes_fl) > 0.05  # the axes differ on these files
+    corr = data.head_vertices
+    inner = data.smplx_ratio[corr] == 0  # pure FLAME vertices: moved by the offset alone
+    assert inner.sum() > 0.5 * len(corr)
+    np.testing.assert_allclose((data.template[corr][inner] - fl["v_template"][inner]).astype(np.float64),
+                               np.broadcast_to(eyes_sx - eyes_fl, (int(inner.sum()), 3)), atol=2e-6)
+    eyes = [data.joint_names.index(n) for n in ("left_eye", "right_eye")]
+    np.testing.assert_allclose(data.joint_template[eyes].mean(0), eyes_sx, atol=1e-5)

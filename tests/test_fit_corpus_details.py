@@ -1,9 +1,10 @@
 """Behaviour details of the fitting component (:mod:`m3t.fitting`) that the coarser engine tests do not pin down:
-what the content keys of tracks, fits, batch fits and imports follow; how one signer's batch treats its imported,
-failing and fused clips; the quarantine record; which config sections and artifact folders the MLflow run of a
-corpus gets; the data-quality and import summaries; the solver's schedule, the default camera and the batch's
-error message; the executors built without starting a cluster; the run's scheduler (capacity, polling, dead
-workers, failing tasks) driven by in-process stand-in executors; the cache's integrity checks; fusion's messages,
+what the content keys of tracks, fits, batch fits and imports follow (the key version included); how one signer's
+batch treats its imported, failing and fused clips; the quarantine record; which config sections and artifact
+folders the MLflow run of a corpus gets; the data-quality and import summaries; the solver's schedule, the bounds
+every objective evaluation respects, the identity a batch holds fixed, the default camera and the batch's error
+message; the executors built without starting a cluster; the run's scheduler (capacity, polling, dead workers,
+failing tasks) driven by in-process stand-in executors; the cache's integrity checks; fusion's messages,
 interpolation and initialisation record; the camera-only stage. Written to pin behaviours that mutation testing
 found unchecked.
 
@@ -1738,3 +1739,69 @@ def test_the_progress_bar_counts_the_quarantined_clips_as_they_come(tmp_path, ca
     err = capsys.readouterr().err
     assert "fit-corpus slt_pickle" in err and f"quarantined={quarantined}" in err
 
+
+def test_fits_cached_under_an_older_key_version_are_redone(body, synthetic_root, tmp_path, monkeypatch):
+    """Bumping ``KEY_VERSION`` (fitting code changed) invalidates a signer batch's cached fit: nothing computed
+    under the older version is reused."""
+    import m3t.fitting.corpus as corpus
+
+    def ctx():
+        return synthetic_ctx(tmp_path, synthetic_root, body, fit_corpus={"batch_clips": 2})
+
+    clips = clips_of(ctx())
+    pair = [clips["s0-b"], clips["s0-c"]]
+    first = process_batch(pair, ctx())
+    assert {o.status for o in first} == {"fitted"}
+    assert {o.status for o in process_batch(pair, ctx())} == {"cached"}
+    monkeypatch.setattr(corpus, "KEY_VERSION", corpus.KEY_VERSION + "-next")
+    again = process_batch(pair, ctx())
+    assert {o.status for o in again} == {"fitted"}
+    assert not {o.part for o in again} & {o.part for o in first}
+
+
+def test_a_known_identity_is_held_fixed_in_every_clips_fit(body, short_track):
+    """``identity`` given (a signer's identity from an earlier chunk): every result carries exactly it, even with
+    ``fit_identity`` on; without it the fit starts from the default identity and fits it, or keeps the default
+    when ``fit_identity`` is off."""
+    from m3t.fitting.fit import FittingConfig, fit_tracks
+
+    cfg = FittingConfig(iterations=3, camera_iterations=1)
+    assert cfg.fit_identity
+    known = np.array([0.3, 0.6, 0.4, 0.55, 0.45, 0.7])  # float64, as read from a file: results are float32
+    for fit_identity in (True, False):
+        results = fit_tracks([short_track, short_track], body, dataclasses.replace(cfg, fit_identity=fit_identity),
+                             identity=known)
+        assert len(results) == 2
+        for result in results:
+            assert result.identity.dtype == np.float32
+            np.testing.assert_array_equal(result.identity, known.astype(np.float32))
+    default = body.default_identity().numpy()
+    fitted = fit_tracks([short_track], body, cfg)[0].identity
+    assert not np.array_equal(fitted, default) and np.all((fitted >= 0) & (fitted <= 1))
+    held = fit_tracks([short_track], body, dataclasses.replace(cfg, fit_identity=False))[0].identity
+    np.testing.assert_array_equal(held, default)
+
+
+@pytest.mark.parametrize("solver", ["lbfgs", "adam"])
+def test_bounded_streams_enter_the_objective_clamped_to_their_bounds(body, short_track, monkeypatch, solver):
+    """Anny's facial actions live in [0, 1]: from an initialisation outside them (a tracker's estimate
+    overshooting), every evaluation of the objective (the camera stage's and each solver step's or line-search
+    trial's) hands the body model values clamped to the bounds, and the result lies within them."""
+    from m3t.fitting.fit import FittingConfig, fit_track
+
+    face = short_track.init["face"].copy()
+    face[:, 0], face[:, 1], face[:, 2] = -0.4, 1.5, 3.0
+    track = dataclasses.replace(short_track, init={**short_track.init, "face": face})
+    seen: list[torch.Tensor] = []
+    forward_keypoints = body.forward_keypoints
+
+    def recording(params, identity, keypoints):
+        seen.append(params["face"].detach().clone())
+        return forward_keypoints(params, identity, keypoints)
+
+    monkeypatch.setattr(body, "forward_keypoints", recording)
+    result = fit_track(track, body, FittingConfig(solver=solver, iterations=4, camera_iterations=1))
+    faces = torch.cat(seen)
+    assert len(seen) >= 5 and float(faces.min()) >= 0.0 and float(faces.max()) <= 1.0
+    assert result.params["face"].min() >= 0.0 and result.params["face"].max() <= 1.0
+    np.testing.assert_array_equal(seen[0][:, :3].numpy(), np.tile([0.0, 1.0, 1.0], (3, 1)))

@@ -514,3 +514,55 @@ def test_bleu_on_jieba_words_counts_each_word_as_one_token():
     hyp, ref = "C++ 明天 北方 下雨 南方 晴朗", "C 明天 北方 下雨 南方 晴朗"
     assert bleu4([hyp], [ref], method="zh") == pytest.approx(100 * (5 / 6 * 4 / 5 * 3 / 4 * 2 / 3) ** 0.25)
     assert bleu4([ref], [ref], method="zh") == pytest.approx(100.0)
+
+
+def test_every_path_is_a_monotone_walk_whose_costs_add_up_to_the_optimal_cost():
+    """With continuous random costs (no ties) the optimal warping path is unique: every batched path must start at
+    (0, 0), end at (T1 - 1, T2 - 1), move by one of the three DTW steps, and its costs must add up to the DP's
+    optimum; two-row and two-column matrices included (their first row or column is where a step up or left is
+    last possible), and signed costs (any finite matrix is accepted; with distances a step along the first row or
+    column is never cheaper than the diagonal, with signed costs it can be)."""
+    rng = np.random.default_rng(3)
+    shapes = [(2, 5), (5, 2), (2, 2), (3, 7), (7, 3), (6, 6), (1, 4), (4, 1)]
+    costs = [rng.uniform(low, 1.0, size=s) for s in shapes for low in (0.1, -1.0) for _ in range(6)]
+    for c, result in zip(costs, dtw_batch(costs)):
+        t1, t2 = c.shape
+        acc = np.full((t1 + 1, t2 + 1), np.inf)
+        acc[0, 0] = 0.0
+        for i in range(t1):
+            for j in range(t2):
+                acc[i + 1, j + 1] = c[i, j] + min(acc[i, j], acc[i, j + 1], acc[i + 1, j])
+        path = result.path
+        assert path[0].tolist() == [0, 0] and path[-1].tolist() == [t1 - 1, t2 - 1], c.shape
+        assert {tuple(s) for s in np.diff(path, axis=0).tolist()} <= {(1, 1), (1, 0), (0, 1)}, c.shape
+        assert result.path_length == len(path)
+        assert result.cost_raw == pytest.approx(acc[-1, -1], rel=1e-12)
+        assert c[path[:, 0], path[:, 1]].sum() == pytest.approx(acc[-1, -1], rel=1e-12), (c.shape, path.tolist())
+
+
+
+
+def test_tied_steps_prefer_the_diagonal_then_the_previous_row_then_the_previous_column():
+    """Integer costs tie often; the documented rule (diagonal, then i - 1, then j - 1) decides every tie, checked
+    against a plain walk back through the accumulated table."""
+    rng = np.random.default_rng(5)
+    costs = [rng.integers(0, 3, size=(int(rng.integers(1, 7)), int(rng.integers(1, 7)))).astype(float)
+             for _ in range(60)]
+    for c, result in zip(costs, dtw_batch(costs)):
+        t1, t2 = c.shape
+        acc = np.full((t1 + 1, t2 + 1), np.inf)
+        acc[0, 0] = 0.0
+        for i in range(t1):
+            for j in range(t2):
+                acc[i + 1, j + 1] = c[i, j] + min(acc[i, j], acc[i, j + 1], acc[i + 1, j])
+        i, j, walk = t1 - 1, t2 - 1, [(t1 - 1, t2 - 1)]
+        while (i, j) != (0, 0):
+            diag, up, left = acc[i, j], acc[i, j + 1], acc[i + 1, j]  # cells (i-1, j-1), (i-1, j), (i, j-1)
+            if diag <= min(up, left):
+                i, j = i - 1, j - 1
+            elif up <= left:
+                i -= 1
+            else:
+                j -= 1
+            walk.append((i, j))
+        assert [tuple(s) for s in result.path.tolist()] == walk[::-1], c.tolist()

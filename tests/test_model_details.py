@@ -1096,3 +1096,50 @@ def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp
     assert result.best["epoch"] == 1 and result.best["val_vpe_mm"] == 1.0
     # the training loss went down after the first epoch, yet the validation error decides
     assert min(r["train_recon_mse"] for r in result.history) < result.history[0]["train_recon_mse"]
+
+
+def test_a_trained_smlm_checkpoint_keeps_its_step_count_and_training_settings(smlm_parts, tmp_path):
+    from m3t.smlm.checkpoint import load_smlm
+    from m3t.smlm.config import SMLMTrainConfig
+    from m3t.smlm.train import steps_per_epoch, train_smlm
+
+    torch.set_num_threads(1)
+    model, vocab, examples = smlm_parts
+    cfg = SMLMTrainConfig(epochs=2, batch_size=2, warmup_steps=1, device="cpu", lr=3e-4)
+    train_smlm(model.cfg, cfg, vocab, examples, None, "data-v7", tmp_path / "best.pt", progress=False)
+    loaded = load_smlm(tmp_path / "best.pt")
+    assert loaded.epoch == 2 and loaded.data_version == "data-v7"
+    assert loaded.step == 2 * steps_per_epoch(len(examples), 2) == 4
+    settings = loaded.train_config
+    assert settings["epochs"] == 2 and settings["batch_size"] == 2 and settings["lr"] == 3e-4
+    assert settings["device"] == "cpu" and settings["warmup_steps"] == 1
+    assert all(isinstance(v, (bool, int, float, str)) for v in settings.values())
+
+
+def test_a_reduced_vocabulary_over_a_tokenizer_without_a_path_still_explains_the_refusal():
+    from m3t.smlm.vocab import ReducedText, VocabularyError
+
+    class Loaded:  # a tokenizer object that does not know where it was loaded from
+        size, model_proto = 10, b""
+        pad_id, bos_id, eos_id, unk_id = 0, 1, 2, 3
+
+    with pytest.raises(VocabularyError) as info:
+        ReducedText(Loaded(), [0, 1, 2, 3, 12])
+    assert str(info.value) == ("the reduced text vocabulary must list ascending, distinct ids of the tokenizer in ? "
+                               "(0 .. 9); got 5 ids from (0,) to (12,): the checkpoint was made with another mBART "
+                               "tokenizer")
+
+
+def test_a_sentencepiece_model_without_a_pad_id_is_refused():
+    import io
+
+    import sentencepiece as spm
+
+    from m3t.smlm.vocab import SentencePieceText, VocabularyError
+
+    buffer = io.BytesIO()
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(["the friend buys a red car", "my father drinks water"]),
+                                   model_writer=buffer, vocab_size=30, model_type="unigram", hard_vocab_limit=False,
+                                   minloglevel=2, num_threads=1)  # SentencePiece's default: no pad id (-1)
+    with pytest.raises(VocabularyError, match="model must define pad, bos, eos and unk ids"):
+        SentencePieceText(buffer.getvalue())

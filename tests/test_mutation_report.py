@@ -60,3 +60,19 @@ def test_the_sample_is_stable_when_code_changes_add_mutants():
     assert len(set(mutation.draw(grown, 50, seed=0)) - set(sample)) <= 5
     shrunk = population[10:]  # ... or removed 10
     assert len(set(sample) - set(mutation.draw(shrunk, 50, seed=0))) <= 10
+
+
+def test_the_score_leaves_out_only_the_survivors_justified_as_equivalent():
+    justified = {"m3t.metrics.f__mutmut_survived0": "equivalent: numpy infers that dtype anyway",
+                 "m3t.metrics.f__mutmut_survived1": "unreachable: every caller checks it first",
+                 "m3t.metrics.f__mutmut_survived2": "wording: a plot title",
+                 "m3t.metrics.f__mutmut_killed0": "equivalent: listed, but a test kills it"}
+    same = mutation.equivalents(justified)
+    assert same == {"m3t.metrics.f__mutmut_survived0", "m3t.metrics.f__mutmut_survived1",
+                    "m3t.metrics.f__mutmut_killed0"}
+    result = mutation.summary(rows("metrics", killed=7, survived=4, no_tests=1), equivalent=same)
+    total = result["total"]
+    assert total["detection_pct"] == pytest.approx(58.3)  # 7 / 12: every survivor counts against the rate
+    assert total["equivalent"] == 2  # the killed one is not a survivor; the reworded title stays undetected
+    assert total["score_pct"] == 70.0 and total["score_ci95"] == mutation.wilson(7, 10)  # 7 / (12 - 2)
+    assert mutation.summary(rows("metrics", killed=3))["total"]["equivalent"] == 0

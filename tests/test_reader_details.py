@@ -3,8 +3,9 @@ corpus and shard tests do not pin down.
 
 Written to pin behaviours that mutation testing found unchecked: what a reader's error message names (the file,
 the clip folder, the line and byte, the metadata key) and the fix it advises, every field of a quarantine record,
-the defaults a listed clip gets for columns its source leaves empty, how text files split into lines, how a 2D or
-partly masked ``.pose`` body is read and how letter clips are resampled, that splits and spelled words are
+the defaults a listed clip gets for columns its source leaves empty, the media kind a clip's extra starts with,
+how text files split into lines, which keys a SOKE frame keeps when renamed, how a 2D or partly masked ``.pose``
+body is read and how letter clips are resampled, that splits and spelled words are
 reproducible, the geometry of the synthetic corpus (signers stand upright and face the camera, hand targets lie in
 front of the body within reach, movements stay bounded and circles turn one way, the idle sway is subtle), the
 synthetic lexicon's constraints (minimal pairs, distinct manual forms, sentence lengths), how the corpus is written
@@ -39,6 +40,7 @@ from m3t.corpora.base import (
     load_data_pickle,
     media_path_problem,
     read_lines,
+    with_kind,
 )
 from m3t.corpora.clip import Clip
 from m3t.corpora.config import SyntheticCorpusConfig
@@ -1198,3 +1200,39 @@ def test_sentence_text_follows_each_languages_word_order():
                 else:
                     joined = " ".join(words)
                     assert text == joined[0].upper() + joined[1:]
+
+
+def test_clip_extra_starts_with_the_media_kind_and_an_unknown_kind_is_named():
+    assert with_kind("pose", clip_type="letter", frames=12, gloss=None) == (
+        ("media_kind", "pose"), ("clip_type", "letter"), ("frames", "12"))
+    assert with_kind("synthetic") == (("media_kind", "synthetic"),)
+    with pytest.raises(ValueError) as err:
+        with_kind("audio", start_s=1.0)
+    assert str(err.value) == ("media kind 'audio' unknown; expected one of video, frames, pose, smplx_params, "
+                              "flame_params, keypoints, spelled, synthetic")
+
+
+def test_soke_frames_keep_their_other_keys_and_may_not_mix_both_namings(tmp_path):
+    """SOKE's keys are renamed to the smplx package's; the frame's other keys (a translation, eye poses that some
+    exports add) keep their names and are stacked like in any export. A frame holding a parameter under both
+    names is refused naming the file and the SOKE key."""
+    rng = np.random.default_rng(5)
+    frames = [fx.smplx_frame(rng) | {"transl": np.full(3, n, np.float32), "leye_pose": np.zeros(3, np.float32),
+                                      "reye_pose": np.ones(3, np.float32)} for n in range(2)]
+    _write_frames(tmp_path / "clip", frames)
+    seq = load_smplx_sequence(tmp_path / "clip")
+    assert {k: v.shape for k, v in seq.items()} == {
+        "global_orient": (2, 3), "body_pose": (2, 63), "left_hand_pose": (2, 45), "right_hand_pose": (2, 45),
+        "jaw_pose": (2, 3), "expression": (2, 10), "betas": (2, 10), "transl": (2, 3), "leye_pose": (2, 3),
+        "reye_pose": (2, 3)}
+    np.testing.assert_array_equal(seq["transl"], [[0, 0, 0], [1, 1, 1]])
+    np.testing.assert_array_equal(seq["reye_pose"], np.ones((2, 3)))
+    np.testing.assert_array_equal(seq["global_orient"][1], frames[1]["smplx_root_pose"])
+
+    mixed = fx.smplx_frame(rng) | {"global_orient": np.zeros(3, np.float32)}
+    _write_frames(tmp_path / "mixed", [mixed])
+    with pytest.raises(SmplxSequenceError) as err:
+        load_smplx_sequence(tmp_path / "mixed")
+    file = tmp_path / "mixed" / "0.pkl"
+    assert str(err.value) == f"{file}: holds both 'smplx_root_pose' and 'global_orient'; keep one naming"
+    assert (err.value.file, err.value.key) == (file, "smplx_root_pose")
