@@ -749,3 +749,58 @@ def test_eye_alignment_puts_the_flame_eyes_midpoint_on_smplx_eyes_on_every_axis(
                                np.broadcast_to(eyes_sx - eyes_fl, (int(inner.sum()), 3)), atol=2e-6)
     eyes = [data.joint_names.index(n) for n in ("left_eye", "right_eye")]
     np.testing.assert_allclose(data.joint_template[eyes].mean(0), eyes_sx, atol=1e-5)
+
+
+def test_smplfx_rest_pose_mesh_is_the_template_plus_identity_expression_and_eyelid_offsets(fx):
+    """At the rest pose a vertex is the template plus each coefficient times its direction (identity, the 100
+    FLAME expressions and the two eyelids): the mesh moves by exactly ``c * direction`` in the protocol frame,
+    for the full mesh and for the sparse vertex keypoints alike."""
+    frame = TO_PROTOCOL_FRAME.to(fx.template.dtype)
+    params = fx.rest_params(1)
+    zero_id = fx.default_identity()
+    base = fx.forward(params, zero_id).vertices[0]
+    root = fx.joint_template[fx._root]
+    torch.testing.assert_close(base, (fx.template - root) @ frame.T, atol=1e-6, rtol=0)
+
+    face = params["face"].clone()
+    face[0, 7], face[0, 100], face[0, 101] = 2.0, 0.8, -0.5  # an expression and both eyelids
+    moved = fx.forward({**params, "face": face}, zero_id).vertices[0]
+    offset = 2.0 * fx.face_dirs[7] + 0.8 * fx.face_dirs[100] - 0.5 * fx.face_dirs[101]
+    assert offset.abs().max() > 1e-3  # the directions do move the face
+    torch.testing.assert_close(moved - base, offset @ frame.T, atol=1e-6, rtol=0)
+
+    corr = fx.correspondence("mediapipe_holistic")
+    keypoints = fx.keypoint_set(corr)
+    vert = keypoints.is_vertex & keypoints.valid.bool()
+    vidx = keypoints.vertex_index[vert]
+    kp_base = fx.forward_keypoints(params, zero_id, keypoints)[0, vert]
+    kp_moved = fx.forward_keypoints({**params, "face": face}, zero_id, keypoints)[0, vert]
+    torch.testing.assert_close(kp_moved - kp_base, offset[vidx] @ frame.T, atol=1e-6, rtol=0)
+    torch.testing.assert_close(kp_moved, moved[vidx], atol=1e-6, rtol=0)
+
+    identity = zero_id.clone()
+    identity[3], identity[12] = 1.5, -2.0  # a SMPL-X beta and a FLAME shape coefficient
+    shaped = fx.forward(params, identity).vertices[0]
+    root_shift = 1.5 * fx.joint_identity_dirs[3, fx._root] - 2.0 * fx.joint_identity_dirs[12, fx._root]
+    shape_offset = 1.5 * fx.identity_dirs[3] - 2.0 * fx.identity_dirs[12] - root_shift
+    assert shape_offset.abs().max() > 1e-3
+    torch.testing.assert_close(shaped - base, shape_offset @ frame.T, atol=1e-6, rtol=0)
+
+
+def test_metric_joints_are_the_rotation_streams_bones_as_integer_joint_entries(fx):
+    """The metric skeleton: one joint entry per bone a rotation stream drives (body, then hands), in stream order;
+    ``joints_for`` poses exactly those joints."""
+    from m3t.body.metric_sets import joints_for, metric_joints
+
+    corr = metric_joints(fx)
+    names = [label for m in fx.layout.modalities if m.kind == "rotation6d" for label in m.labels]
+    assert corr.names == tuple(names) and len(names) == 10 + 15 + 15
+    assert corr.kind.dtype.kind == "i" and corr.index.dtype.kind == "i", "Correspondence holds integer arrays"
+    assert (corr.kind == 1).all() and corr.valid.all()
+    assert corr.index.tolist() == [fx.joint_names.index(n) for n in names]
+    params = {k: v.numpy() for k, v in fx.rest_params(2).items()}
+    params["body"] = params["body"] + 0.1 * np.random.default_rng(0).normal(size=params["body"].shape)
+    got = joints_for(fx, params, np.zeros(fx.layout.identity_dim, dtype=np.float32))
+    dense = fx.forward({k: torch.as_tensor(v, dtype=torch.float32) for k, v in params.items()},
+                       fx.default_identity()).joints[:, corr.index]
+    torch.testing.assert_close(got, dense, atol=1e-5, rtol=0)

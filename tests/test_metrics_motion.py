@@ -566,3 +566,56 @@ def test_tied_steps_prefer_the_diagonal_then_the_previous_row_then_the_previous_
                 j -= 1
             walk.append((i, j))
         assert [tuple(s) for s in result.path.tolist()] == walk[::-1], c.tolist()
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"mode": "soke"}, ("motion metric mode 'soke' unknown; use 'm3t' (neck-rooted body, this project's tables) or "
+                        "'soke_exact' (SOKE's pelvis-rooted body, needs SMPL-FX)")),
+    ({"backend": "cupy"}, ("motion metric backend 'cupy' unknown; use 'numba' (fused CPU kernels) or 'torch' (cost "
+                           "matrices on any torch device)")),
+    ({"device": "cuda:1"}, "motion metric device 'cuda:1' needs backend 'torch'; the numba kernels run on the CPU"),
+])
+def test_motion_metric_settings_name_the_bad_value_and_the_choices(settings, message):
+    from m3t.metrics.motion import MotionMetricsConfig
+
+    with pytest.raises(ValueError) as err:
+        MotionMetricsConfig(**settings)
+    assert str(err.value) == message
+    for mode in ("m3t", "soke_exact"):  # every documented choice is accepted; any torch device with backend torch
+        MotionMetricsConfig(mode=mode, backend="torch", device="cuda:1")
+        MotionMetricsConfig(mode=mode, backend="numba", device="cpu")
+
+
+def test_torch_backend_workers_compute_cost_matrices_on_that_many_threads_with_the_same_results(monkeypatch):
+    import threading
+
+
+    from m3t.metrics import motion
+
+    rng = np.random.default_rng(4)
+    pairs = [(regions(rng, t1), regions(rng, t2)) for t1, t2 in [(5, 7), (6, 4), (3, 3)]]
+    reference = motion.evaluate_pairs(pairs)  # numba kernels
+    threads: list[str] = []
+    lock = threading.Lock()
+
+    def recorded(fn):
+        def wrapper(*args, **kwargs):
+            with lock:
+                threads.append(threading.current_thread().name)
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(motion, "jpe_distance_matrix", recorded(motion.jpe_distance_matrix))
+    monkeypatch.setattr(motion, "pa_distance_matrix", recorded(motion.pa_distance_matrix))
+    main = threading.current_thread().name
+    for workers in (1, 2, 3):
+        threads.clear()
+        got = motion.evaluate_pairs(pairs, config=motion.MotionMetricsConfig(backend="torch", workers=workers))
+        assert len(threads) == 3 * 2 * 3, "one JPE and one PA matrix per region and pair"
+        if workers == 1:
+            assert set(threads) == {main}
+        else:
+            assert main not in threads and 1 <= len(set(threads)) <= workers
+        for want, have in zip(reference, got):
+            assert have.keys() == want.keys()
+            assert all(have[k] == pytest.approx(want[k], abs=1e-9) for k in want)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import json
 import re
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -1143,3 +1144,132 @@ def test_a_sentencepiece_model_without_a_pad_id_is_refused():
                                    minloglevel=2, num_threads=1)  # SentencePiece's default: no pad id (-1)
     with pytest.raises(VocabularyError, match="model must define pad, bos, eos and unk ids"):
         SentencePieceText(buffer.getvalue())
+
+
+def test_vq_defaults_are_the_papers_and_one_training_step_is_an_ema_update_by_hand():
+    """T2M-GPT / SOKE's VQ (M3T's VQ baseline): decay 0.99 and commitment weight 0.02 by default, as in the
+    ``tokenizer`` config; a training step moves each code's EMA statistics by ``decay`` and the loss is
+    ``beta * mse(z, q)`` against the codebook before the update."""
+    from m3t.tokenizers.vq import EMAResetVQ
+
+    vq = EMAResetVQ(4, 3)
+    cfg = TokenizerConfig()
+    assert (vq.decay, vq.beta, vq.reset_threshold) == (cfg.vq_decay, cfg.vq_beta, 1.0) == (0.99, 0.02, 1.0)
+    codebook = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    vq.codebook.copy_(codebook)
+    vq.ema_sum.copy_(5.0 * codebook)
+    vq.ema_count.fill_(5.0)
+    vq.initialised.fill_(True)
+    z = torch.tensor([[0.1, 0.0, 0.0], [0.9, 0.1, 0.0], [1.1, 0.0, 0.0], [0.0, 0.8, 0.1]])
+    vq.train()
+    out = vq(z)
+    assert out.indices.tolist() == [0, 1, 1, 2]
+    assert out.loss.item() == pytest.approx(0.02 * ((z - codebook[[0, 1, 1, 2]]) ** 2).mean().item(), rel=1e-6)
+    counts = torch.tensor([1.0, 2.0, 1.0, 0.0])
+    sums = torch.stack([z[0], z[1] + z[2], z[3], torch.zeros(3)])
+    torch.testing.assert_close(vq.ema_count, 0.99 * 5.0 + 0.01 * counts)
+    torch.testing.assert_close(vq.ema_sum, 0.99 * 5.0 * codebook + 0.01 * sums)
+    torch.testing.assert_close(vq.codebook, (0.99 * 5.0 * codebook + 0.01 * sums) / (0.99 * 5.0 + 0.01 * counts)[:, None])
+    assert vq.last_resets == 0
+
+
+def test_tokenizer_config_passes_its_settings_to_each_groups_vae():
+    cfg = TokenizerConfig(levels_body=(3, 2), levels_hand=(5,), levels_face=(2, 2, 2), quantizer="vq", width=16,
+                          depth=3, down_stages=1, dilation_growth=2, vq_code_dim=7, vq_decay=0.5, vq_beta=0.25)
+    for group, levels in (("body", (3, 2)), ("hand", (5,)), ("face", (2, 2, 2))):
+        vae = cfg.vae_config(group, 11)
+        assert (vae.input_dim, vae.levels, vae.quantizer, vae.width, vae.depth, vae.down_stages,
+                vae.dilation_growth, vae.vq_code_dim, vae.vq_decay, vae.vq_beta) == (
+            11, levels, "vq", 16, 3, 1, 2, 7, 0.5, 0.25)
+
+
+def test_loading_a_missing_or_foreign_smlm_checkpoint_names_it_and_the_stage_to_run(tmp_path):
+    from m3t.smlm.checkpoint import FORMAT as SMLM_FORMAT
+    from m3t.smlm.checkpoint import load_smlm
+
+    missing = tmp_path / "smlm" / "model.pt"
+    with pytest.raises(FileNotFoundError) as err:
+        load_smlm(missing)
+    assert str(err.value) == f"SMLM checkpoint {missing} not found; run `dvc repro train-smlm` first"
+    other = tmp_path / "tokenizer.pt"
+    torch.save({"format": "m3t-tokenizer-v1", "state_dict": {}}, other)
+    with pytest.raises(ValueError, match="not an m3t SMLM checkpoint") as err:
+        load_smlm(other)
+    assert str(other) in str(err.value) and "'m3t-tokenizer-v1'" in str(err.value)
+    assert f"expected {SMLM_FORMAT!r}" in str(err.value)
+    torch.save({"state_dict": {}}, other)  # no format at all: refused too, before any key is read
+    with pytest.raises(ValueError, match=f"format None, expected {SMLM_FORMAT!r}"):
+        load_smlm(other)
+
+
+def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, monkeypatch):
+    import m3t.tokenizers.train as train_module
+    from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
+
+    seen: list[dict[str, float]] = []
+    real_step = train_module.train_step
+
+    def recording_step(*args, **kwargs):
+        stats = real_step(*args, **kwargs)
+        seen.append(stats)
+        return stats
+
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
+                               windows_per_clip=2, device="cpu")
+    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+                                          seqs, None, "v", progress=False)
+    steps = len(seen) // 2
+    assert steps >= 2 and len(seen) == 2 * steps and len(result.history) == 2
+    for epoch, record in enumerate(result.history):
+        window = seen[epoch * steps:(epoch + 1) * steps]
+        for key in ("loss", "recon_mse", "perplexity"):
+            assert record[f"train_{key}"] == pytest.approx(sum(s[key] for s in window) / steps, rel=1e-9), key
+
+
+class _rest_RecordingDDP(torch.nn.Module):
+    """Stands in for DistributedDataParallel (which needs a process group): wraps the model like it does."""
+
+    wrapped: ClassVar[list] = []
+
+    def __init__(self, module):
+        super().__init__()
+        self.module = module
+        _rest_RecordingDDP.wrapped.append(module)
+
+    def forward(self, *args, **kwargs):
+        return self.module(*args, **kwargs)
+
+
+@pytest.mark.parametrize("world_size", [1, 2])
+def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(tmp_path, monkeypatch, world_size):
+    import m3t.tokenizers.train as train_module
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
+
+    nets = []
+    real_step = train_module.train_step
+
+    def recording_step(net, *args, **kwargs):
+        nets.append(net)
+        return real_step(net, *args, **kwargs)
+
+    _rest_RecordingDDP.wrapped = []
+    monkeypatch.setattr(train_module, "DistributedDataParallel", _rest_RecordingDDP)
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(4)]
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
+                               windows_per_clip=1, device="cpu")
+    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+                                          seqs, None, "v", dist_ctx=DistributedContext(0, world_size), progress=False)
+    assert nets, "at least one training step"
+    if world_size == 1:
+        assert _rest_RecordingDDP.wrapped == [] and all(net is result.model for net in nets)
+    else:  # every step goes through the one data-parallel wrapper of the returned model
+        assert _rest_RecordingDDP.wrapped == [result.model]
+        assert all(isinstance(net, _rest_RecordingDDP) and net.module is result.model for net in nets)

@@ -427,3 +427,58 @@ def test_damaged_layout_metadata_names_the_shard_file():
         check_schema_metadata({VERSION_KEY: version, LAYOUT_KEY: b"{not json"}, "fitted/x.parquet")
     with pytest.raises(ShardFormatError, match=r"^fitted/y\.parquet: no m3t\.schema_version"):
         check_schema_metadata(None, "fitted/y.parquet")
+
+
+def _rest_broken_clip(case: str):
+
+    from m3t.shards import FittedClip
+
+    clip = make_clip(2, 4, np.random.default_rng(0))
+    params, identity, camera = dict(clip.params), clip.identity, clip.camera
+    if case == "missing":
+        del params["left_hand"]
+    elif case == "unknown":
+        params["tail"] = params["face"]
+    elif case == "shape":
+        params["face"] = params["face"][:, :2]
+    elif case == "dtype":
+        params["face"] = params["face"].astype(np.int32)
+    elif case == "nan":
+        params["face"] = params["face"].copy()
+        params["face"][1, 0] = np.nan
+    elif case == "frames":
+        params["face"] = params["face"][:3]
+    elif case == "empty":
+        params = {k: v[:0] for k, v in params.items()}
+    elif case == "identity":
+        identity = identity[:3]
+    elif case == "camera":
+        camera = {"focal": np.array([1000.0, 1000.0])}
+    return FittedClip(clip.clip, clip.key, params, identity, camera, clip.metrics, clip.body_model), LAYOUT
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", ("clip 'clip-0002': modalities do not match the layout (missing ['left_hand'], unknown []); layout "
+                 "has ['body', 'left_hand', 'right_hand', 'face']")),
+    ("unknown", ("clip 'clip-0002': modalities do not match the layout (missing [], unknown ['tail']); layout has "
+                 "['body', 'left_hand', 'right_hand', 'face']")),
+    ("shape", ("clip 'clip-0002', modality 'face': shape (4, 2), layout expects (T, 3); check that the clip was "
+               "fitted with the same body model as the layout")),
+    ("dtype", "clip 'clip-0002', modality 'face': dtype int32, expected float32"),
+    ("nan", "clip 'clip-0002', modality 'face': contains NaN or inf; the fit diverged"),
+    ("frames", "clip 'clip-0002', modality 'face': 3 frames, other modalities have 4"),
+    ("empty", "clip 'clip-0002': has no frames; drop it before writing the shard"),
+    ("identity", "clip 'clip-0002', identity: shape (3,), layout expects (4,)"),
+    ("camera", ("clip 'clip-0002', camera: not JSON-serialisable (Object of type ndarray is not JSON serializable); "
+                "store plain lists/floats")),
+])
+def test_writing_a_malformed_clip_says_which_clip_and_what_is_wrong_and_writes_nothing(tmp_path, case, message):
+
+    from m3t.shards import write_shard
+
+    bad, layout = _rest_broken_clip(case)
+    path = tmp_path / "train.parquet"
+    with pytest.raises(ValueError) as err:
+        write_shard(path, [make_clip(1, 4, np.random.default_rng(1)), bad], layout)
+    assert str(err.value) == message
+    assert not path.exists()
