@@ -1805,3 +1805,27 @@ def test_bounded_streams_enter_the_objective_clamped_to_their_bounds(body, short
     assert len(seen) >= 5 and float(faces.min()) >= 0.0 and float(faces.max()) <= 1.0
     assert result.params["face"].min() >= 0.0 and result.params["face"].max() <= 1.0
     np.testing.assert_array_equal(seen[0][:, :3].numpy(), np.tile([0.0, 1.0, 1.0], (3, 1)))
+
+
+def test_a_batch_sent_to_a_worker_is_processed_with_that_workers_context(tmp_path):
+    from m3t.fitting.corpus import fit_batch
+
+    root = cfx.build_slt_import(tmp_path / "slt").root
+    ctx = slt_ctx(tmp_path, root)
+    clips = clips_of(ctx)
+    outcomes = fit_batch(ctx.job, [clips["train__clip0"], clips["train__clip1"]])
+    assert [(o.clip_id, o.status) for o in outcomes] == [("train__clip0", "fitted"), ("train__clip1", "fitted")]
+    assert all(Path(o.part).parent == tmp_path / "cache" / "parts" and Path(o.part).is_file() for o in outcomes)
+
+
+def test_an_import_whose_adapter_cannot_read_sources_is_refused_naming_the_clip_and_corpus(tmp_path):
+    from m3t.corpora.how2sign import How2SignCorpus
+    from m3t.fitting.imports import read_source
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip = Clip("c7", "how2sign", "train", "ASL", "s0", "", "", "clips/c7", 24.0)
+    with pytest.raises(ClipRefused) as info:
+        read_source(clip, "smplx_params", How2SignCorpus(tmp_path))
+    assert info.value.group == "no source reader"
+    assert str(info.value) == ("clip c7: corpus 'how2sign' lists smplx_params clips but its adapter cannot read "
+                               "them (no source() method)")

@@ -19,6 +19,7 @@ import json
 import os
 import pickle
 import shutil
+import struct
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -36,7 +37,9 @@ from m3t.corpora.base import (
     Collector,
     CorpusError,
     Quarantined,
+    check_fractions,
     hash_split,
+    hash_unit,
     load_data_pickle,
     media_path_problem,
     read_lines,
@@ -44,7 +47,7 @@ from m3t.corpora.base import (
 )
 from m3t.corpora.clip import Clip
 from m3t.corpora.config import SyntheticCorpusConfig
-from m3t.corpora.csl_daily import CslDailyCorpus
+from m3t.corpora.csl_daily import INFO_KEYS, CslDailyCorpus, _record
 from m3t.corpora.fingerspelling import (
     FingerspellingConfig,
     FingerspellingCorpus,
@@ -60,11 +63,12 @@ from m3t.corpora.fitted_pickles import (
     SokeSmplxCorpus,
     load_smplx_sequence,
 )
+from m3t.corpora.how2sign import How2SignConfig
 from m3t.corpora.mead import read_flame_params
 from m3t.corpora.nmfs_csl import NmfsCslConfig, NmfsCslCorpus
 from m3t.corpora.phoenix14t import Phoenix14TCorpus
 from m3t.corpora.posefile import PoseData, PoseFileConfig, PoseFileCorpus, pose_data, read_pose, read_pose_info
-from m3t.corpora.synthetic_lexicon import CONCEPTS, LANGUAGES, SignForm, build_lexicon, make_sentence
+from m3t.corpora.synthetic_lexicon import CONCEPTS, LANGUAGES, VISEMES, SignForm, build_lexicon, make_sentence
 from m3t.shards.io import validate_clip, write_shard
 from m3t.shards.schema import FittedClip, ShardFormatError, arrow_schema
 from m3t.shards.tokens import TokenClip, TokenInfo, read_token_shard, write_token_shard
@@ -1236,3 +1240,185 @@ def test_soke_frames_keep_their_other_keys_and_may_not_mix_both_namings(tmp_path
     file = tmp_path / "mixed" / "0.pkl"
     assert str(err.value) == f"{file}: holds both 'smplx_root_pose' and 'global_orient'; keep one naming"
     assert (err.value.file, err.value.key) == (file, "smplx_root_pose")
+
+
+class _fc_Python2Pickler(pickle._Pickler):
+    """Writes ``str`` and ``bytes`` as Python 2 wrote its 8-bit ``str`` (the SHORT_BINSTRING / BINSTRING opcodes
+    of ``pickletools``' table; text as UTF-8 bytes). Python 3 reads such strings with the ``encoding`` given to
+    the unpickler; ``numpy.load``'s documentation names ``encoding='latin1'`` as the one that reads Python 2
+    pickles holding numpy arrays."""
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+    def save_py2_str(self, obj):
+        data = obj.encode("utf-8") if isinstance(obj, str) else bytes(obj)
+        if len(data) < 256:
+            self.write(pickle.SHORT_BINSTRING + bytes([len(data)]) + data)
+        else:
+            self.write(pickle.BINSTRING + struct.pack("<i", len(data)) + data)
+        self.memoize(obj)
+
+    dispatch[str] = save_py2_str
+    dispatch[bytes] = save_py2_str
+
+
+def test_python2_corpus_pickles_decode_text_as_utf8_and_array_buffers_as_latin1(tmp_path):
+    """Without numpy, 8-bit strings are text (UTF-8: a Chinese gloss survives); with numpy, they are decoded as
+    latin-1 so that an array's raw buffer (any byte values) rebuilds the array exactly."""
+    path = tmp_path / "info.pkl"
+    with open(path, "wb") as fh:
+        _fc_Python2Pickler(fh, protocol=2).dump({"name": "S000000_P0000_T00", "label_word": ["谢谢", "你好"]})
+    assert pickle.SHORT_BINSTRING + b"\x04name" in path.read_bytes()  # a Python 2 str, not unicode
+    assert load_data_pickle(path, allow_numpy=False) == {"name": "S000000_P0000_T00", "label_word": ["谢谢", "你好"]}
+
+    array = np.array([[0.5, -1.25, 3.0], [1e-3, 255.0, -7.5]], np.float32)  # buffer bytes above 0x7f
+    assert max(array.tobytes()) > 0x7F
+    with open(path, "wb") as fh:
+        _fc_Python2Pickler(fh, protocol=2).dump({"sign": array})
+    loaded = load_data_pickle(path, allow_numpy=True)
+    assert loaded["sign"].dtype == np.float32
+    np.testing.assert_array_equal(loaded["sign"], array)
+    with pytest.raises(CorpusError) as err:
+        load_data_pickle(path, allow_numpy=False)
+    message = str(err.value)
+    assert message.startswith(f"{path}: the pickle references numpy.") and "a non-data class, and was refused" in message
+    assert "Re-save it holding only builtin containers, numbers, strings." in message
+
+
+@pytest.mark.parametrize("module, name", [("chumpy.ch", "Ch"), ("scipy.sparse._csr", "csr_matrix"),
+                                          ("torch._utils", "_rebuild_tensor_v2")])
+def test_corpus_pickles_refuse_model_file_classes_naming_the_class_and_the_file(tmp_path, module, name):
+    """Body-model files may hold chumpy / scipy objects (read as inert records there); a corpus file that
+    references them, in a submodule too, is refused before anything is built."""
+    path = tmp_path / "clip.pkl"
+    path.write_bytes(b"\x80\x02}q\x00X\x01\x00\x00\x00xq\x01c" + f"{module}\n{name}\n".encode() + b")Rq\x02s.")
+    for allow_numpy in (True, False):
+        with pytest.raises(CorpusError) as err:
+            load_data_pickle(path, allow_numpy=allow_numpy)
+        message = str(err.value)
+        assert message.startswith(f"{path}: the pickle references {module}.{name}, a non-data class, and was "
+                                  "refused (nothing was run).")
+        assert ("torch tensors are refused" in message) == (module == "torch._utils")
+
+
+def test_fractions_may_leave_a_split_empty_but_must_be_three_non_negative_summing_to_one():
+    for fractions in ((1.0, 0.0, 0.0), (0.9, 0.1, 0.0), (0.0, 0.5, 0.5), (0.8, 0.1, 0.1)):
+        check_fractions(fractions, "corpora.x.split_fractions")
+    for bad in ((0.8, 0.3, -0.1), (0.8, 0.1), (0.5, 0.3, 0.1), (0.25, 0.25, 0.25, 0.25)):
+        with pytest.raises(ValueError) as err:
+            check_fractions(bad, "corpora.x.split_fractions")
+        assert str(err.value) == ("option corpora.x.split_fractions: expected three non-negative train/dev/test "
+                                  f"fractions summing to 1, got {bad}")
+
+
+def test_fingerspelling_may_spell_one_letter_words_into_one_split(tmp_path, ase_letters):
+    _letter_table(tmp_path, ase_letters)
+    cfg = FingerspellingConfig(words_per_language=3, min_letters=1, max_letters=1, split_fractions=(1.0, 0.0, 0.0))
+    clips = FingerspellingCorpus(tmp_path, cfg).listing().clips
+    words = [c for c in clips if "spelled" in c.id]
+    assert len(words) == 3 and all(len(c.text) == 1 for c in words)
+    assert {c.split for c in clips} == {"train"}
+    assert {c.corpus for c in clips} == {"fingerspelling"} and {c.language for c in clips} == {"ase"}
+    for bad in ({"min_letters": 0}, {"min_letters": 3, "max_letters": 2}, {"words_per_language": -1}):
+        with pytest.raises(ValueError) as err:
+            FingerspellingConfig(**bad)
+        assert "need words_per_language >= 0 and 1 <= min_letters <= max_letters" in str(err.value)
+    with pytest.raises(ValueError, match=r"option corpora.fingerspelling.split_fractions: .*got \(0.5, 0.5, 0.5\)"):
+        FingerspellingConfig(split_fractions=(0.5, 0.5, 0.5))
+
+
+def test_soke_annotation_language_and_signer_override_the_defaults(tmp_path):
+    fx.build_soke(tmp_path, "phoenix")
+    (tmp_path / "notes.csv").write_text("id,text,signer,language\nb1_0-8-rgb_front,guten morgen,Signer05,DGS\n"
+                                        "c1_3-5-rgb_front,regen,,\n", encoding="utf-8")
+    clips = SokeSmplxCorpus(tmp_path, SokeSmplxConfig(annotation="notes.csv", language="GSL")).listing().clips
+    assert [(c.id, c.language, c.signer, c.corpus) for c in clips] == [
+        ("b1_0-8-rgb_front", "DGS", "Signer05", "soke_smplx"), ("c1_3-5-rgb_front", "GSL", "unknown", "soke_smplx")]
+
+
+def test_how2sign_refuses_a_non_positive_frame_rate_naming_the_option():
+    for fps in (0.0, -24.0):
+        with pytest.raises(ValueError) as err:
+            How2SignConfig(fps=fps)
+        assert str(err.value) == f"corpora.how2sign.fps must be > 0, got {fps}"
+    assert How2SignConfig(fps=30.0).fps == 30.0
+
+
+def test_csl_daily_info_entry_that_is_not_a_dict_names_its_type_and_the_keys_expected():
+    assert _record(["S000000_P0000_T00", 120]) == ("info entry is a list, expected a dict with keys name, length, "
+                                                    "label_gloss, label_char, label_word, signer")
+    assert _record("S000000_P0000_T00").startswith("info entry is a str, expected a dict with keys name, length,")
+    entry = {"name": "S000000_P0000_T00", "length": 120, "label_gloss": ["你", "好"], "label_char": ["你", "好"],
+             "label_word": ["你好"], "signer": 0}
+    assert _record(entry) is entry and set(entry) == set(INFO_KEYS)
+    assert _record({k: v for k, v in entry.items() if k != "signer"}) == "info entry lacks keys ['signer']"
+    assert _record({**entry, "name": ""}) == "name '' is not a non-empty string"
+    assert _record({**entry, "name": 7}) == "name 7 is not a non-empty string"
+    assert _record({**entry, "label_char": "你好"}) == "label_char is not a list of strings"
+    assert _record({**entry, "label_gloss": ["你", 2]}) == "label_gloss is not a list of strings"
+    assert _record({**entry, "label_word": []}) == "label_word is empty (no sentence text)"
+
+
+def test_nmfs_dictionary_bad_lines_are_quarantined_with_the_file_and_line(tmp_path):
+    (tmp_path / "dictionary.txt").write_text("0\t谢谢\n\nx\t你好\n0 再见\n2\n3\tthank you\n", encoding="utf-8")
+    out = Collector(tmp_path)
+    assert NmfsCslCorpus(tmp_path).read_dictionary(out) == {0: "谢谢", 3: "thank you"}
+    assert out.listing().quarantined == (
+        Quarantined("dictionary.txt", 3, None, "malformed class line 'x\\t你好': expected '<index><tab or space><gloss>'"),
+        Quarantined("dictionary.txt", 4, None, "class 0 defined twice"),
+        Quarantined("dictionary.txt", 5, None, "malformed class line '2': expected '<index><tab or space><gloss>'"))
+    with pytest.raises(CorpusError) as err:
+        NmfsCslCorpus(tmp_path).read_dictionary()
+    assert str(err.value).startswith(f"{tmp_path / 'dictionary.txt'} line 3: malformed class line")
+
+
+def test_nmfs_dev_clips_are_drawn_from_train_by_the_documented_hash(tmp_path):
+    """``dev_fraction`` moves the train clips with ``hash_unit(id, salt="nmfs_csl-dev") < dev_fraction`` (module
+    docstring): the dev set is part of the data version and is pinned here."""
+    fx.build_nmfs_csl(tmp_path)
+    clips = NmfsCslCorpus(tmp_path, NmfsCslConfig(dev_fraction=0.5)).listing().clips
+    moved = {c.id for c in clips if c.split == "dev"}
+    assert moved == {c.id for c in clips if c.get("source_split") == "train"
+                     and hash_unit(c.id, salt="nmfs_csl-dev") < 0.5}
+    assert sorted(moved) == ["P02__2_01", "P02__3_01", "P03__0_02"]
+    assert all(c.split == "test" for c in clips if c.get("source_split") == "test")
+    assert {c.split for c in NmfsCslCorpus(tmp_path).listing().clips} == {"train", "test"}
+
+
+def test_phoenix_clips_record_the_rows_start_and_end(tmp_path):
+    fx.build_phoenix14t(tmp_path)
+    path = tmp_path / fx.PHOENIX_FILE.format(split="dev")
+    lines = path.read_text(encoding="utf-8").splitlines()
+    name = lines[1].split("|")[0]
+    lines[1] = f"{name}|{name}/1/*.png|12|87|Signer00|REGEN MORGEN|morgen regnet es"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    clips = {c.id: c for c in Phoenix14TCorpus(tmp_path).listing().clips}
+    assert (clips[name].get("start"), clips[name].get("end"), clips[name].get("frame_glob")) == ("12", "87", "*.png")
+    assert clips[name].get("annotation") == f"{fx.PHOENIX_FILE.format(split='dev')}:2"
+    other = clips[lines[2].split("|")[0]]
+    assert (other.get("start"), other.get("end")) == ("-1", "-1")
+
+
+def test_arm_calibration_puts_the_knuckle_on_each_target(body):
+    """The right arm's inverse kinematics reaches the middle knuckle's targets to within a centimetre."""
+    torch.set_num_threads(1)
+    targets, rest_target = synthetic._targets(body)
+    goal = np.stack([targets["chin"], rest_target])
+    rest = synthetic._stream_rest(body)
+    solved = synthetic._arm_ik(body, rest, goal, steps=150)
+    assert solved.shape == (2, 4, 3)
+    arm_idx = [body.layout["body"].labels.index(f"{b}.R") for b in synthetic.ARM]
+    zeros = {k: torch.zeros(2, len(body.layout[k].labels), 3) for k in rest}
+    zeros["body"][:, arm_idx] = torch.as_tensor(solved)
+    with torch.no_grad():
+        out = body.forward(synthetic._to_params(zeros, torch.zeros(2, body.layout["face"].dim), rest),
+                           body.default_identity())
+    knuckle = out.joints[:, synthetic._joint(body, "finger3-1.R")].numpy()
+    assert np.linalg.norm(knuckle - goal, axis=-1).max() < 0.01
+
+
+def test_mouthings_run_one_to_three_visemes():
+    signs = build_lexicon(len(CONCEPTS), 2, np.random.default_rng(0))
+    assert all(set(s.mouthing) <= set(VISEMES) for s in signs)
+    assert {len(s.mouthing) for s in signs if s.group == "normal"} == {1, 2, 3}
+    assert {len(s.mouthing) for s in signs if s.group == "confusing"} <= {1, 2, 3}
