@@ -804,3 +804,28 @@ def test_metric_joints_are_the_rotation_streams_bones_as_integer_joint_entries(f
     dense = fx.forward({k: torch.as_tensor(v, dtype=torch.float32) for k, v in params.items()},
                        fx.default_identity()).joints[:, corr.index]
     torch.testing.assert_close(got, dense, atol=1e-5, rtol=0)
+
+
+def test_the_body_factory_hands_the_flame_shape_count_to_smplfx_and_keeps_no_geometry_in_its_state(fx_files):
+    from m3t.body.config import BodyConfig
+    from m3t.body.factory import load_body_model
+
+    cfg = BodyConfig(model="smplfx", smplx_path=str(fx_files.smplx), flame_path=str(fx_files.flame_npz),
+                     flame_correspondence_path=str(fx_files.correspondence), flame_shape_dims=50)
+    body = load_body_model(cfg)
+    labels = body.layout.identity_labels
+    assert len(labels) == 60 and labels[-1] == "flame_shape_049"  # 10 SMPL-X shapes + the 50 asked for
+    # every buffer is rebuilt from the licensed files: a saved state would copy their geometry into checkpoints
+    assert body.state_dict() == {} and len(list(body.buffers())) > 0
+
+
+def test_landmark_vertices_take_each_faces_corner_of_largest_weight():
+    from m3t.body.smplfx_build import _landmark_vertices
+
+    smplx = {"f": np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]]), "lmk_faces_idx": np.array([2, 0, 1]),
+             "lmk_bary_coords": np.array([[0.8, 0.1, 0.1], [0.1, 0.1, 0.8], [0.2, 0.7, 0.1]])}
+    assert _landmark_vertices(smplx).tolist() == [6, 2, 4]
+    with pytest.raises(ModelFileError) as info:
+        _landmark_vertices({"f": smplx["f"], "lmk_faces_idx": smplx["lmk_faces_idx"]})
+    assert str(info.value) == ("the SMPL-X file lacks 'lmk_faces_idx' / 'lmk_bary_coords' (the landmark embedding); "
+                               "use SMPLX_NEUTRAL.npz from the SMPL-X v1.1 download")

@@ -619,3 +619,70 @@ def test_torch_backend_workers_compute_cost_matrices_on_that_many_threads_with_t
         for want, have in zip(reference, got):
             assert have.keys() == want.keys()
             assert all(have[k] == pytest.approx(want[k], abs=1e-9) for k in want)
+
+
+def test_summarise_names_the_metrics_in_which_a_pair_differs_from_the_first():
+    assert summarise([{"a": 1.0, "b": 2.0}, {"a": 3.0, "b": 4.0}]) == {"a": 2.0, "b": 3.0}
+    with pytest.raises(ValueError) as info:
+        summarise([{"a": 1.0, "b": 2.0}, {"a": 1.0, "b": 2.0}, {"a": 1.0, "c": 3.0}])
+    assert str(info.value) == ("pair 2 reports ['b', 'c'] unlike pair 0; evaluate all pairs with the same regions "
+                               "and config")
+    with pytest.raises(ValueError, match="^no per-pair metrics to summarise; evaluate at least one pair$"):
+        summarise([])
+
+
+def test_regions_may_be_given_as_lists_of_per_frame_tensors_or_arrays():
+    """A region is anything that reads as (T, K, 3) floats: one array, one tensor, or a list of per-frame (K, 3)
+    tensors or arrays; all give the same metrics."""
+    rng = np.random.default_rng(4)
+    pred, gt = regions(rng, 6), regions(rng, 5)
+    reference = evaluate_pairs([(pred, gt)])[0]
+    as_frames = {k: [torch.as_tensor(frame) for frame in v] for k, v in pred.items()}
+    as_arrays = {k: list(v) for k, v in gt.items()}
+    assert evaluate_pairs([(as_frames, as_arrays)])[0] == pytest.approx(reference, rel=1e-12)
+
+
+def test_available_cores_counts_the_cores_this_process_may_run_on(monkeypatch):
+    from m3t.metrics import kernels
+
+    monkeypatch.setattr(kernels.os, "cpu_count", lambda: 8)
+    monkeypatch.setattr(kernels.os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)
+    assert kernels.available_cores() == 2  # pinned to two of the eight (taskset, a cluster's cgroup)
+    monkeypatch.delattr(kernels.os, "sched_getaffinity")  # systems without affinity masks (macOS, Windows)
+    assert kernels.available_cores() == 8
+    monkeypatch.setattr(kernels.os, "cpu_count", lambda: None)  # undeterminable
+    assert kernels.available_cores() == 1
+
+
+def test_native_dtw_of_float32_or_integer_cost_matrices_accumulates_in_float64():
+    pytest.importorskip("numba")
+    from m3t.metrics import kernels
+
+    rng = np.random.default_rng(8)
+    cost = rng.uniform(0.0, 1.0, size=(40, 30)) + 1e4  # large: float32 sums would drift by whole units
+    exact = kernels.dtw_costs([cost])[0]
+    single = kernels.dtw_costs([cost.astype(np.float32)])[0]
+    assert single.cost_raw == dtw_batch([cost.astype(np.float32)])[0].cost_raw
+    assert single.cost_raw == pytest.approx(exact.cost_raw, abs=0.1) and isinstance(single.cost_raw, float)
+    whole = kernels.dtw_costs([np.arange(12).reshape(3, 4)])[0]
+    assert isinstance(whole.cost_raw, float) and whole.cost_raw == dtw_batch([np.arange(12).reshape(3, 4)])[0].cost_raw
+
+
+def test_quaternion_solve_converges_to_the_top_eigenvalue_of_horns_matrix_to_rounding_level():
+    """tr(R S) of the optimal rotation is the largest eigenvalue of Horn's matrix; Newton's quadratic convergence
+    puts it there to a few ulps on well-conditioned sets (a wrong derivative converges too, but only to ~1e-13)."""
+    from m3t.metrics import procrustes
+
+    torch.manual_seed(0)
+    x = torch.randn(2000, 10, 3, dtype=torch.float64)
+    y = x @ torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64))[0] + 0.01 * torch.randn_like(x)
+    x, y = x - x.mean(1, keepdim=True), y - y.mean(1, keepdim=True)
+    cov = torch.einsum("nki,nkj->ijn", x, y).contiguous()  # component-first (3, 3, N)
+    upper = torch.minimum((x.square().sum((1, 2)) * y.square().sum((1, 2))).sqrt(),
+                          (3.0 * cov.square().sum((0, 1))).sqrt()).contiguous()
+    horn = torch.stack([torch.stack(row, 0) for row in procrustes._horn_matrix(cov)], 0).permute(2, 0, 1)
+    top = torch.linalg.eigvalsh(horn)[:, -1]
+    rotation, trace, ill = procrustes._rotation_quaternion(cov, upper)
+    assert not bool(ill.any())
+    assert float(((trace - top).abs() / top.abs()).max()) < 1e-14
+    assert torch.allclose(torch.einsum("ijn,jin->n", rotation, cov), trace, rtol=1e-12, atol=0)

@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
@@ -482,3 +483,24 @@ def test_writing_a_malformed_clip_says_which_clip_and_what_is_wrong_and_writes_n
         write_shard(path, [make_clip(1, 4, np.random.default_rng(1)), bad], layout)
     assert str(err.value) == message
     assert not path.exists()
+
+
+@pytest.mark.parametrize("damage", [math.nan, math.inf, None])
+def test_a_shard_damaged_after_writing_names_the_row_and_column_of_the_bad_value(tmp_path, clips, damage):
+    """The writer refuses NaN / inf, so a non-finite or missing (null) value in a stored frame means the file was
+    edited or damaged afterwards: the reader names the row holding it (not the first row) and the column, for a
+    value deep in a later row as for one in row 0."""
+    path = write_shard(tmp_path / "a.parquet", clips, LAYOUT)
+    table = pq.read_table(path)
+    for row, frame, value_index in ((3, 4, 1), (0, 0, 0)):
+        column = table.column("face").to_pylist()
+        column[row][frame][value_index] = damage
+        damaged = table.set_column(table.schema.get_field_index("face"), table.schema.field("face"),
+                                   pa.array(column, type=table.schema.field("face").type))
+        out = tmp_path / f"damaged-{row}.parquet"
+        pq.write_table(damaged.replace_schema_metadata(table.schema.metadata), out)
+        with pytest.raises(ShardFormatError) as info:
+            read_shard(out)
+        assert str(info.value) == (f"{out}: row {row} (0-based), column 'face' holds NaN or inf; the shard is damaged "
+                                   "(re-run the stage that wrote it)")
+        assert read_shard(out, modalities=["body"]).clips[row].clip.id == clips[row].clip.id  # other columns read

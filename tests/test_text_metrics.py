@@ -168,3 +168,9 @@ def test_slt_metrics_by_language_names_the_definition_and_counts_sentences():
     assert out["slt_bleu4"] == pytest.approx((out["slt/DGS/bleu4"] + out["slt/ASL/bleu4"] + 100) / 3)
     with pytest.raises(ValueError, match="3 languages"):
         slt_metrics_by_language(hyps, refs, ["DGS", "ASL", "CSL"])
+
+
+def test_bleu_refuses_a_tokenizer_name_it_does_not_know_even_in_another_case():
+    for method in ("13A", "ZH", "intl"):
+        with pytest.raises(ValueError, match=rf"^unknown tokenizer '{method}'; use one of \('13a', 'zh', 'char'\)$"):
+            bleu4(["the friend buys a car"], ["the friend buys a red car"], method=method)
