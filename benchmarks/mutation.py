@@ -294,9 +294,9 @@ def main(argv: list[str] | None = None) -> dict:
     result.update({"mutmut": mutmut.__version__, "commit": commit or "?", "date": dt.date.today().isoformat(),
                    "run_seconds": seconds, "max_children": args.max_children})
     out = Path(args.out)
-    if seconds is None and out.exists():  # --report-only: keep the time the last run took
+    if seconds is None and out.exists():  # --report-only: keep the commit, date and time of the run that measured
         previous = json.loads(out.read_text()).get("detail", {})
-        result.update({k: previous.get(k) for k in ("run_seconds", "max_children") if previous.get(k)})
+        result.update({k: previous.get(k) for k in ("run_seconds", "max_children", "commit", "date") if previous.get(k)})
     write_report(rows, result, out.with_suffix(".md"))
     from report import write_and_log
 

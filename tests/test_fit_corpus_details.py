@@ -1829,3 +1829,139 @@ def test_an_import_whose_adapter_cannot_read_sources_is_refused_naming_the_clip_
     assert info.value.group == "no source reader"
     assert str(info.value) == ("clip c7: corpus 'how2sign' lists smplx_params clips but its adapter cannot read "
                                "them (no source() method)")
+
+
+def test_a_listing_quarantine_is_grouped_by_its_reason_up_to_the_first_semicolon():
+    from m3t.corpora.base import Listing, Quarantined
+    from m3t.fitting.corpus import listing_outcomes
+
+    reasons = ("split 'foo'; expected one of train, dev, val, test", "bad times: end 5.0 s <= start 5.0 s",
+               "plain reason", "b" * 61)
+    listing = Listing((), tuple(Quarantined("annotation.csv", i + 2, f"c{i}", r) for i, r in enumerate(reasons)))
+    assert [o.group for o in listing_outcomes(listing)] == ["listing: split 'foo'", "listing: bad times",
+                                                           "listing: plain reason", "listing: " + "b" * 60]
+
+
+def test_a_real_clips_track_name_follows_the_key_version(pose_root, tmp_path, monkeypatch):
+    """A code change that bumps ``KEY_VERSION`` retracks every clip: its track file gets another name."""
+    import m3t.fitting.corpus as engine
+
+    pose = pose_ctx(tmp_path, pose_root, None)
+    track = load_track(track_clip(clips_of(pose)["plain-a"], pose))
+    monkeypatch.setattr(engine, "track_real_clip", lambda clip, root, cfg: track)
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    (videos / "v1.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42 first")
+    (videos / "index.csv").write_text("id,path,split,text,language,signer\n")
+    ctx = FitContext(fit_job(tmp_path, "posefile", videos, {"index": "index.csv"}))
+    clip = Clip("v1", "posefile", "train", "ase", "s0", "", "", "v1.mp4", 25.0, extra=(("media_kind", "video"),))
+    first = track_clip(clip, ctx)
+    monkeypatch.setattr(engine, "KEY_VERSION", engine.KEY_VERSION + "-next")
+    second = track_clip(clip, ctx)
+    assert second != first and second.parent == first.parent and second.name.startswith("v1-")
+    monkeypatch.undo()
+    assert track_clip(clip, FitContext(ctx.job)) == first
+
+
+def test_a_run_given_an_executor_and_no_context_sends_it_every_batch_and_counts_each_clip_once(
+        body, tmp_path, monkeypatch):
+    """The run only opens an executor of its own when it is given none (and no in-process context); the
+    progress bar ends at the number of clips."""
+    import tqdm.auto
+
+    import m3t.fitting.cluster as cluster
+    import m3t.fitting.corpus as engine
+    from m3t.fitting.corpus import fit_batch, run_fit_corpus
+
+    job = fit_job(tmp_path, "synthetic", tmp_path / "corpus", fit_corpus={"batch_clips": 2})
+    clips = signer_clips("a", "b", "a", "c")
+    monkeypatch.setattr(engine, "worker_context", lambda j: FitContext(j, body))
+
+    def no_own_executor(run):
+        raise AssertionError("the run opened an executor of its own")
+
+    monkeypatch.setattr(cluster, "open_executor", no_own_executor)
+    bars = []
+
+    class Bar(tqdm.auto.tqdm):
+        def close(self):
+            bars.append(self.n)
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Bar)
+    executor = BareExecutor(fitted)
+    report = run_fit_corpus(job, executor, clips=clips, progress=True)
+    assert sorted(tuple(c.id for c in args[1]) for _, args in executor.sent) == [("a1", "a2"), ("b1",), ("c1",)]
+    assert all(fn is fit_batch and args[0] is job for fn, args in executor.sent)
+    assert sorted(o.clip_id for o in report.outcomes) == ["a1", "a2", "b1", "c1"]
+    assert bars and set(bars) == {4}  # closed (once or twice: tqdm closes again when collected) at 4 of 4
+
+
+def test_two_streams_of_one_tracker_add_up_in_the_initialisation_record():
+    from m3t.fitting.fusion import REST, FusedInit, describe
+
+    source = {"body": np.array([0, 1, 1, REST])}
+    fused = FusedInit({}, source, {"body": ("nlf:a", "nlf:b")}, None)
+    d = describe(fused)
+    assert d["init_share_nlf_body"] == 0.75 and d["init_share_tracker_body"] == 0.75
+    assert d["init_share_rest_body"] == 0.25 and d["init_source"] == "fused: nlf"
+
+
+def test_an_imported_keypoint_clip_has_no_body_model_and_no_identity():
+    from m3t.fitting.imports import NO_IDENTITY, import_clip
+
+    clip, settings = import_kw()
+    sign = np.arange(12, dtype=np.float32).reshape(3, 4)
+    fitted, init = import_clip(clip, "keypoints", {"sign": sign}, "k", settings)
+    assert fitted.body_model == "none" and fitted.key == "k" and fitted.camera == {}
+    np.testing.assert_array_equal(fitted.params["sign"], sign)
+    assert list(fitted.params) == ["sign"]
+    np.testing.assert_array_equal(fitted.identity, np.zeros(len(NO_IDENTITY), np.float32))
+    assert init["init_source"].startswith("imported: ") and init["init_source"].endswith(", no tracking or fitting")
+
+
+def test_a_fit_without_a_recorded_initialisation_counts_as_unknown():
+    from m3t.fitting.quality import quality_report
+
+    outcomes = [ClipOutcome("a", "train", "fitted", frames=3), ClipOutcome("b", "train", "cached", frames=2,
+                                                                           init={"init_source": "fused: nlf"})]
+    summary = quality_report(outcomes, "x").summary
+    assert summary["init_sources"] == {"unknown": 1, "fused": 1}
+    assert quality_report(outcomes[:1], "x").summary["init_sources"] == {"unknown": 1}
+
+
+def test_the_quality_picture_shows_each_parts_missing_ratio(tmp_path, monkeypatch):
+    from matplotlib.figure import Figure
+
+    from m3t.fitting.quality import MISSING_PARTS, plot_quality, quality_report
+
+    coverage = {"missing_left_hand": 0.25, "missing_right_hand": 0.5, "missing_face": 0.75}
+    report = quality_report([ClipOutcome("a", "train", "fitted", frames=4, track_frames=4, coverage=coverage,
+                                         metrics={"reproj_px_parts": 3.0})], "synthetic")
+    figures = []
+    real_savefig = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **kw: figures.append(fig) or real_savefig(fig, *a, **kw))
+    path = plot_quality(report, tmp_path / "q.png")
+    assert path.is_file() and path.stat().st_size > 0
+    (fig,) = figures
+    left, right = fig.axes
+    assert [p.get_height() for p in right.patches] == [report.summary[f"missing_{p}_ratio"] for p in MISSING_PARTS]
+    assert [t.get_text() for t in right.get_xticklabels()] == list(MISSING_PARTS)
+    assert right.get_ylim() == (0, 1) and left.get_ylabel() == "clips"
+    empty = quality_report([ClipOutcome("x", "train", "quarantined")], "slt")
+    figures.clear()
+    plot_quality(empty, tmp_path / "empty.png")
+    assert [p.get_height() for p in figures[0].axes[1].patches] == [0.0] * len(MISSING_PARTS)
+
+
+def test_lbfgs_minimises_a_loss_of_tiny_absolute_size_too():
+    """Only the relative ``tolerance`` stops the solver early: a loss whose values are a millionth of the usual
+    (the pseudo-Huber loss above, scaled) still reaches its minimum."""
+    from m3t.fitting.fit import FittingConfig, _minimise
+
+    x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
+    curve: list[float] = []
+    _minimise(lambda: 1e-6 * torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(iterations=30), "full", 0.0,
+              curve)
+    assert 2 < len(curve) <= 30 and curve[-1] == pytest.approx(3e-6, rel=1e-6)
+    np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-3)

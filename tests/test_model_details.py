@@ -5,7 +5,9 @@ corpus), the SMLM evaluator's batching, progress output, decoding and scoring, t
 (and why), the reduced mBART embedding and text tokenizers (specials, id mapping, errors naming the tokenizer),
 the training loops' progress bars, the window sampler's equal DDP shares and whole-frame crops, stream groups
 and layout checks, tokenizer checkpoints, the tokenizer's normalisation (floor, mapping back) and mirrored
-decoder, the VQ quantiser's settings, region keypoints, and the codebook histogram's bars.
+decoder, the VQ quantiser's settings, region keypoints, the codebook histogram's bars, a padded batch's logits
+(equal to each example's alone), training refusing an absent CUDA device, the tokenizer checkpoint's step count,
+the sampler's seed and rank share, boolean window masks, and the reconstruction probe's frame cap.
 Written to pin behaviours that mutation testing of the library found unchecked. Tiny untrained models only.
 
 The fitted shards here are the project's own Parquet format (:mod:`m3t.shards.io`) over a small hand-made
@@ -14,6 +16,7 @@ layout of the four motion streams, so no body model is needed to tokenise.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import re
 from typing import ClassVar
@@ -1273,3 +1276,123 @@ def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(
     else:  # every step goes through the one data-parallel wrapper of the returned model
         assert _rest_RecordingDDP.wrapped == [result.model]
         assert all(isinstance(net, _rest_RecordingDDP) and net.module is result.model for net in nets)
+
+
+# ---------------------------------------------------------------- padding, devices, step counts, sampler seeds, probe cap
+
+
+def test_padded_batch_gives_each_example_the_logits_it_gets_alone(smlm_parts):
+    """Both tasks: the decoder attends to the real encoder states only, never to the padded memory."""
+    from m3t.smlm.data import production_batch, translation_batch
+
+    torch.set_num_threads(1)
+    model, vocab, examples = smlm_parts
+    short = dataclasses.replace(examples[2], text_ids=examples[2].text_ids[:2])  # 2 text tokens against 6
+    pair = [examples[0], short]
+    with torch.no_grad():
+        batch = production_batch(pair, vocab)
+        assert not batch.text_mask.all(), "the shorter text is padded"
+        together = model.production(batch.text_ids, batch.text_mask, batch.motion_in, batch.motion_mask)
+        for i, example in enumerate(pair):
+            one = production_batch([example], vocab)
+            alone = model.production(one.text_ids, one.text_mask, one.motion_in, one.motion_mask)
+            steps = one.motion_in.shape[1]
+            for head, logits in alone.items():
+                assert torch.allclose(together[head][i, :steps], logits[0], atol=1e-5), (example.clip_id, head)
+        pair = [examples[0], examples[1]]
+        batch = translation_batch(pair, vocab)
+        assert not batch.motion_mask.all(), "the shorter motion is padded"
+        together = model.translation(batch.motion_ids, batch.motion_mask, batch.text_in, batch.text_mask)
+        for i, example in enumerate(pair):
+            one = translation_batch([example], vocab)
+            alone = model.translation(one.motion_ids, one.motion_mask, one.text_in, one.text_mask)
+            assert torch.allclose(together[i, :one.text_in.shape[1]], alone[0], atol=1e-5), example.clip_id
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(smlm_parts, tmp_path):
+    from m3t.smlm.config import SMLMTrainConfig
+    from m3t.smlm.train import train_smlm
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    model, vocab, examples = smlm_parts
+    cfg = SMLMTrainConfig(epochs=1, batch_size=4, warmup_steps=1, device="cuda")
+    with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
+        train_smlm(model.cfg, cfg, vocab, examples, None, "v", tmp_path / "best.pt", progress=False)
+    assert not (tmp_path / "best.pt").exists()
+    tok_cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "tok"), epochs=1, warmup_epochs=1, batch_size=4,
+                                   window=8, windows_per_clip=1, device="cuda")
+    with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
+        train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), tok_cfg,
+                        [np.zeros((16, 3), dtype=np.float32)], None, "v", progress=False)
+
+
+def test_tokenizer_checkpoints_count_every_optimiser_step_of_every_epoch(tmp_path):
+    from m3t.tokenizers.checkpoint import load_tokenizer
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(5)]
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
+                               windows_per_clip=1, device="cpu")
+    result = train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg, seqs, None,
+                             "v", progress=False)
+    steps = len(WindowSampler(seqs, 8, 2, 1))
+    assert steps == 3  # 5 crops in batches of 2
+    for path in (result.last_path, result.best_path):
+        loaded = load_tokenizer(path)
+        assert (loaded.epoch, loaded.step) == (2, 2 * steps), path.name
+
+
+def test_tokenizer_training_draws_its_windows_from_the_configured_seed_and_its_ranks_share(tmp_path, monkeypatch):
+    import m3t.tokenizers.train as train_module
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.config import TokenizerTrainConfig
+
+    samplers = []
+
+    class RecordingSampler(WindowSampler):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            samplers.append(self)
+
+    _rest_RecordingDDP.wrapped = []
+    monkeypatch.setattr(train_module, "DistributedDataParallel", _rest_RecordingDDP)
+    monkeypatch.setattr(train_module, "WindowSampler", RecordingSampler)
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16 + 3 * i, 3)).astype(np.float32) for i in range(4)]
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
+                               windows_per_clip=2, seed=7, device="cuda")  # across ranks: the group's device
+    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+                                          seqs, None, "v", dist_ctx=DistributedContext(1, 2), progress=False)
+    assert next(result.model.parameters()).device == torch.device("cpu")
+    (sampler,) = samplers
+    assert (sampler.seed, sampler.rank, sampler.world_size) == (7, 1, 2)
+    assert (sampler.window, sampler.batch_size, sampler.per_sequence) == (8, 2, 2)
+    assert all(a is b for a, b in zip(sampler.sequences, seqs)) and len(sampler.sequences) == 4
+
+
+def test_window_sampler_masks_are_boolean_and_mark_the_real_frames_of_a_short_sequence():
+    seqs = [np.arange(10, dtype=np.float32).reshape(5, 2), np.ones((12, 2), np.float32)]
+    sampler = WindowSampler(seqs, 8, 2, per_sequence=1)
+    (x, mask), = list(sampler.epoch(0))
+    assert mask.dtype == torch.bool and mask.shape == (2, 8)
+    items, _ = sampler.crops(0)
+    short = int(np.flatnonzero(items == 0)[0])
+    assert mask[short].tolist() == [True] * 5 + [False] * 3 and mask[1 - short].all()
+    assert torch.equal(x[short, 5:], torch.tensor([[8.0, 9.0]] * 3)), "padding repeats the last frame"
+    assert torch.equal(x[short][mask[short]], torch.from_numpy(seqs[0])), "a boolean mask selects the real frames"
+
+
+@pytest.mark.parametrize("max_frames, kept", [(2000, 2), (2001, 3), (999, 1), (1000, 1), (1, 1), (0, 3)])
+def test_probe_takes_clips_in_order_until_they_reach_max_frames(body, max_frames, kept):
+    from m3t.tokenizers.evaluate import ReconstructionProbe
+
+    clips = [fitted("c1", "dev", 1000, 1), fitted("c2", "dev", 1000, 2), fitted("c3", "dev", 500, 3)]
+    probe = ReconstructionProbe(body, "face", clips, max_frames=max_frames, cache_frames=0)  # nothing posed
+    assert [c.clip.id for c in probe.clips] == ["c1", "c2", "c3"][:kept]
+    assert len(probe._inputs) == kept and all(truth is None for *_, truth in probe._inputs)

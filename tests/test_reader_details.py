@@ -34,9 +34,11 @@ from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import sixd_to_matrix
 from m3t.corpora import synthetic
 from m3t.corpora.base import (
+    CORPORA,
     Collector,
     CorpusError,
     Quarantined,
+    adapter_class,
     check_fractions,
     hash_split,
     hash_unit,
@@ -47,7 +49,7 @@ from m3t.corpora.base import (
 )
 from m3t.corpora.clip import Clip
 from m3t.corpora.config import SyntheticCorpusConfig
-from m3t.corpora.csl_daily import INFO_KEYS, CslDailyCorpus, _record
+from m3t.corpora.csl_daily import INFO_KEYS, CslDailyConfig, CslDailyCorpus, _record
 from m3t.corpora.fingerspelling import (
     FingerspellingConfig,
     FingerspellingCorpus,
@@ -63,8 +65,8 @@ from m3t.corpora.fitted_pickles import (
     SokeSmplxCorpus,
     load_smplx_sequence,
 )
-from m3t.corpora.how2sign import How2SignConfig
-from m3t.corpora.mead import read_flame_params
+from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
+from m3t.corpora.mead import MeadCorpus, read_flame_params
 from m3t.corpora.nmfs_csl import NmfsCslConfig, NmfsCslCorpus
 from m3t.corpora.phoenix14t import Phoenix14TCorpus
 from m3t.corpora.posefile import PoseData, PoseFileConfig, PoseFileCorpus, pose_data, read_pose, read_pose_info
@@ -1422,3 +1424,198 @@ def test_mouthings_run_one_to_three_visemes():
     assert all(set(s.mouthing) <= set(VISEMES) for s in signs)
     assert {len(s.mouthing) for s in signs if s.group == "normal"} == {1, 2, 3}
     assert {len(s.mouthing) for s in signs if s.group == "confusing"} <= {1, 2, 3}
+
+
+# ----------------------------------------------------------------------------------------- more reader details
+def test_csl_daily_refuses_a_non_positive_frame_rate_naming_the_option():
+    for fps in (0, -30.0):
+        with pytest.raises(ValueError) as err:
+            CslDailyConfig(fps=fps)
+        assert str(err.value) == f"corpora.csl_daily.fps must be > 0, got {fps}"
+    assert CslDailyConfig(fps=25.0).fps == 25.0
+
+
+def test_csl_daily_info_entry_that_is_not_a_dict_is_quarantined_and_clips_keep_their_length(tmp_path):
+    """An ``info`` list (see ``build_csl_daily``) with a bare name string among the release's dict records."""
+    fx.build_csl_daily(tmp_path)
+    path = tmp_path / "sentence_label" / "csl2020ct_v2.pkl"
+    with open(path, "rb") as fh:
+        data = pickle.load(fh)
+    data["info"][0]["length"] = 117
+    data["info"].insert(1, "S000001_P0000_T00")
+    with open(path, "wb") as fh:
+        pickle.dump(data, fh)
+    listing = CslDailyCorpus(tmp_path).listing()
+    assert Quarantined("sentence_label/csl2020ct_v2.pkl", 1, None,
+                       "info entry is a str, expected a dict with keys name, length, label_gloss, label_char, "
+                       "label_word, signer") in listing.quarantined
+    lacking = next(i for i, e in enumerate(data["info"]) if isinstance(e, dict) and e["name"] == "S100001_P0000_T00")
+    assert Quarantined("sentence_label/csl2020ct_v2.pkl", lacking, "S100001_P0000_T00",
+                       "info entry lacks keys ['label_gloss']") in listing.quarantined
+    assert [q.file for q in listing.quarantined if q.clip_id == "S100001_P0000_T00"] == [
+        "sentence_label/csl2020ct_v2.pkl"]  # its split row is not reported a second time
+    clips = {c.id: c for c in listing.clips}
+    assert dict(clips["S000000_P0000_T00"].extra) == {"media_kind": "frames", "chars": "你好吗", "length": "117"}
+    assert dict(clips["S000002_P0000_T00"].extra)["length"] == "2"
+
+
+def test_soke_csl_layout_row_with_an_unknown_split_is_quarantined_at_its_annotation_row(tmp_path):
+    """SOKE's CSL-Daily layout (``poses/<clip>/<n>.pkl``, split from the annotation's ``split`` column, see
+    ``build_soke``) with one row's split misspelt."""
+    fx.build_soke(tmp_path, "csl")
+    notes = tmp_path / "annotation.csv"
+    lines = notes.read_text(encoding="utf-8").splitlines()
+    row = next(i for i, line in enumerate(lines, start=1) if line.startswith("b1_0-8-rgb_front,"))
+    lines[row - 1] = lines[row - 1].rsplit(",", 1)[0] + ",foo"
+    notes.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    listing = SokeSmplxCorpus(tmp_path, SokeSmplxConfig(annotation="annotation.csv")).listing()
+    assert Quarantined("annotation.csv", row, "b1_0-8-rgb_front",
+                       "split 'foo'; expected one of train, dev, val, test") in listing.quarantined
+    assert "b1_0-8-rgb_front" not in {c.id for c in listing.clips}
+    assert {c.id: c.split for c in listing.clips}["c1_3-5-rgb_front"] == "test"
+
+
+def _how2sign_train_csv(root: Path) -> Path:
+    (path,) = root.rglob("how2sign_realigned_train.csv")
+    return path
+
+
+def test_how2sign_row_without_sentence_name_is_quarantined_and_a_bad_header_gets_the_hint(tmp_path):
+    """The realigned CSVs of ``build_how2sign`` (the official download script's layout) with a row whose
+    SENTENCE_NAME is blank, then with a comma-separated header."""
+    fx.build_how2sign(tmp_path)
+    path = _how2sign_train_csv(tmp_path)
+    text = path.read_text(encoding="utf-8")
+    lines = text.splitlines()
+    path.write_text(text + "v\tv-rgb\tv_9\t \t1.0\t2.0\tNo name.\n", encoding="utf-8")
+    listing = How2SignCorpus(tmp_path).listing()
+    rel = path.relative_to(tmp_path).as_posix()
+    assert Quarantined(rel, len(lines) + 1, None, "empty SENTENCE_NAME") in listing.quarantined
+    path.write_text(text.replace("\t", ",", 6), encoding="utf-8")
+    with pytest.raises(CorpusError) as err:
+        How2SignCorpus(tmp_path).listing()
+    message = str(err.value)
+    assert message.startswith(f"{path} line 1: header is ")
+    assert message.endswith("Is this a How2Sign realigned CSV (tab-separated)? Point the corpus root at the How2Sign "
+                            "folder, or set option annotations_dir to the folder holding how2sign_realigned_<split>.csv "
+                            "and clips_dir to the sentence clip folders.")
+
+
+def test_phoenix_row_without_name_leaves_the_rows_after_it_listed(tmp_path):
+    """PHOENIX-2014-T's test ``corpus.csv`` (see ``build_phoenix14t``) with a nameless row before its one row."""
+    fx.build_phoenix14t(tmp_path)
+    (path,) = tmp_path.rglob("PHOENIX-2014-T.test.corpus.csv")
+    before = {c.id for c in Phoenix14TCorpus(tmp_path).listing().clips if c.split == "test"}
+    header, *rows = path.read_text(encoding="utf-8").splitlines()
+    path.write_text("\n".join([header, "|x/1/*.png|-1|-1|Signer01|REGEN|es regnet"] + rows) + "\n", encoding="utf-8")
+    listing = Phoenix14TCorpus(tmp_path).listing()
+    assert len(before) == 1 and {c.id for c in listing.clips if c.split == "test"} == before
+    assert Quarantined(path.relative_to(tmp_path).as_posix(), 2, None, "empty name") in listing.quarantined
+
+
+def _pose_v0_1(path: Path, frames: int) -> None:
+    """A ``.pose`` file of the format's version 0.1 (pose-format ``PoseBody.read_v0_1``: fps and frame count as
+    ushorts, a ushort person count, then float32 data (T, P, K, D) and confidence (T, P, K)), one OpenPose hand."""
+    import io as _io
+
+    pose = _openpose_hand_pose(frames, None)
+    buffer = _io.BytesIO()
+    pose.header.write(buffer)
+    header = bytearray(buffer.getvalue())
+    header[:4] = struct.pack("<f", 0.1)
+    data = np.ma.getdata(pose.body.data).astype(np.float32)
+    body = struct.pack("<HHH", 25, frames, 1) + data.tobytes() + np.asarray(pose.body.confidence, np.float32).tobytes()
+    path.write_bytes(bytes(header) + body)
+
+
+def test_a_version_0_1_pose_file_holds_one_person(tmp_path):
+    _pose_v0_1(tmp_path / "old.pose", 4)
+    info = read_pose_info(tmp_path / "old.pose")
+    assert (info.frames, info.people, info.fps, round(info.version, 3)) == (4, 1, 25.0, 0.1)
+    (clip,) = PoseFileCorpus(tmp_path, PoseFileConfig()).listing().clips
+    assert dict(clip.extra)["people"] == "1" and dict(clip.extra)["frames"] == "4"
+
+
+def test_pose_index_row_with_too_many_columns_is_quarantined_naming_its_id(tmp_path, ase_rows):
+    shutil.copyfile(lexicon_root() / ase_rows[0]["path"], tmp_path / "a.pose")
+    (tmp_path / "index.csv").write_text("id,path,split,text,language,signer\na,a.pose,train,A,ase,s0\n"
+                                        "abc,a.pose,dev,B,ase,s0,extra\n,a.pose,dev,C,ase,s0,extra\n",
+                                        encoding="utf-8")
+    listing = PoseFileCorpus(tmp_path, PoseFileConfig(index="index.csv")).listing()
+    assert [c.id for c in listing.clips] == ["a"]
+    assert listing.quarantined == (Quarantined("index.csv", 3, "abc", "malformed row: wrong number of columns"),
+                                   Quarantined("index.csv", 4, None, "malformed row: wrong number of columns"))
+
+
+def test_mead_errors_name_the_root_or_the_file_and_what_was_expected(tmp_path):
+    not_a_folder = tmp_path / "mead.txt"
+    not_a_folder.write_text("x", encoding="utf-8")
+    with pytest.raises(CorpusError) as err:
+        MeadCorpus(not_a_folder).listing()
+    assert str(err.value) == (f"MEAD root {not_a_folder} is not a folder; point it at the folder of subject folders "
+                              f"(EMOTE's release: .../reconstructions/EMICA-MEAD_flame2020)")
+    corrupt = tmp_path / "shape_pose_cam.npz"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip archive")
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(corrupt)
+    assert str(err.value).startswith(f"{corrupt}: not a readable .npz (")
+    assert str(err.value).endswith("); re-export the clip")
+    np.savez(corrupt, exp=np.zeros((2, 50), np.float32), jaw=np.zeros((2, 3), np.float32))
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(corrupt)
+    assert str(err.value) == (f"{corrupt} lacks datasets ['global_pose', 'shape', 'cam']; expected exp, jaw, "
+                              f"global_pose, shape, cam (EMOTE's export)")
+
+
+def test_an_unknown_corpus_name_is_refused_listing_the_known_ones():
+    with pytest.raises(ValueError) as err:
+        adapter_class("phoenix")
+    assert str(err.value) == f"corpus 'phoenix' unknown; expected one of {', '.join(CORPORA)}"
+    assert "phoenix14t, " in str(err.value) and adapter_class("phoenix14t") is Phoenix14TCorpus
+
+
+def test_a_clip_lasts_its_holds_signs_and_the_transitions_between_them(body):
+    """Rest hold, each sign, rest hold, with a blend of ``transition_frames / speed`` (at least 2) frames before
+    every segment but the first."""
+    cfg = SyntheticCorpusConfig(hold_frames=5, frames_per_sign=10, transition_frames=3)
+    synth = synthetic.Synthesiser(body, _rest_calibration(), cfg)
+    signs = [_sign("hold"), _sign("tap"), _sign("hold")]
+    for speed, per_sign, transition in ((1.25, 8, 2), (0.5, 20, 6)):
+        signer = synthetic.Signer("s", np.full(6, 0.5), speed, 1.0, np.zeros(3))
+        params = synth.synthesise(signs, signer)
+        frames = 2 * 5 + len(signs) * per_sign + (len(signs) + 1) * transition
+        assert {k: v.shape[0] for k, v in params.items()} == {k: frames for k in params}
+
+
+def test_a_signs_hand_curls_each_finger_bone_about_its_flexion_axis(body):
+    """Each of the 15 finger bones turns by 1.3 x its handshape curl (radians) about the calibrated axis."""
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(15, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    cal = synthetic.Calibration(axes, _rest_calibration().locations, np.zeros((4, 3)))
+    synth = synthetic.Synthesiser(body, cal, SyntheticCorpusConfig())
+    signer = synthetic.Signer("s", np.full(6, 0.5), 1.0, 1.0, np.zeros(3))
+    for shape in ("fist", "C"):
+        state = synth._sign_segment(_sign("hold", handshape=shape), 6, signer)
+        curls = np.repeat(np.asarray(synthetic.HANDSHAPES[shape]), 3)
+        expected = 1.3 * curls[:, None] * axes
+        assert state["right_hand"].shape == (6, 15, 3)
+        np.testing.assert_allclose(state["right_hand"], np.broadcast_to(expected, (6, 15, 3)))
+        np.testing.assert_allclose(np.linalg.norm(state["right_hand"][0], axis=1), 1.3 * curls)
+
+
+def test_an_interrupt_while_removing_the_old_corpus_propagates_and_leaves_the_new_one(tmp_path, monkeypatch):
+    root = tmp_path / "synthetic"
+    synthetic.write_corpus([_tiny_clip(0)], root)
+    real_rmtree = shutil.rmtree
+
+    def interrupted(path, *args, **kwargs):
+        if Path(path).name == ".synthetic.old":
+            raise KeyboardInterrupt
+        return real_rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(synthetic.shutil, "rmtree", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        synthetic.write_corpus([_tiny_clip(1)], root)
+    monkeypatch.undo()
+    assert [c.id for c in synthetic.SyntheticCorpus(root).clips()] == ["iso-house-signer00-1"]
