@@ -159,7 +159,7 @@ def diff_lines(name: str, file: str) -> list[str]:
             if line[:1] in "-+" and not line.startswith(("---", "+++"))]
 
 
-def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
+def write_report(rows: list[dict], result: dict, out_md: Path, justified: dict[str, str]) -> None:
     total = result["total"]
     lines = [
         "# Mutation testing of the core library",
@@ -186,22 +186,22 @@ def write_report(rows: list[dict], result: dict, out_md: Path) -> None:
     ]
     untargeted = [(f"*untargeted*: all but the {result['targeted']} mutants of functions whose survivors got new "
                    "tests", result["untargeted"])] if result.get("targeted") else []
+    def rate(pct: float | None, interval: tuple[float, float] | None) -> str:
+        """A rate, with its interval when the figures come from a sample."""
+        return f"{pct} ({interval[0]}-{interval[1]})" if interval and result.get("sample") else f"{pct}"
+
     for name, c in [*result["modules"].items(), ("**all**", total), *untargeted]:
-        interval = c["detection_ci95"] if result.get("sample") else None
-        ci = f" ({interval[0]}-{interval[1]})" if interval else ""
-        score_interval = c["score_ci95"] if result.get("sample") else None
-        score_ci = f" ({score_interval[0]}-{score_interval[1]})" if score_interval else ""
         lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['crashed']} | {c['survived']} "
                      f"| {c['no_tests']} "
-                     f"| {c['other']} | {c['detection_pct']}{ci} | {c['detection_of_tested_pct']} "
-                     f"| {c['equivalent']} | {c['score_pct']}{score_ci} |")
+                     f"| {c['other']} | {rate(c['detection_pct'], c['detection_ci95'])} "
+                     f"| {c['detection_of_tested_pct']} "
+                     f"| {c['equivalent']} | {rate(c['score_pct'], c['score_ci95'])} |")
     if total["not_checked"]:
         lines += ["", f"**{total['not_checked']} mutants are not checked yet** (the run was stopped): rerun the "
                   "command to finish; the numbers above count checked mutants only."]
     notes = result.get("notes", [])
     if notes:
         lines += ["", *notes]
-    justified = json.loads(JUSTIFIED_FILE.read_text()) if JUSTIFIED_FILE.exists() else {}
     survivors = [r for r in rows if r["status"] in SURVIVED]
     explained = sum(r["name"] in justified for r in survivors)
     lines += ["", f"Survivors: {len(survivors)}, of which {explained} are justified below (equivalent mutants, or "
@@ -296,8 +296,9 @@ def main(argv: list[str] | None = None) -> dict:
     out = Path(args.out)
     if seconds is None and out.exists():  # --report-only: keep the commit, date and time of the run that measured
         previous = json.loads(out.read_text()).get("detail", {})
-        result.update({k: previous.get(k) for k in ("run_seconds", "max_children", "commit", "date") if previous.get(k)})
-    write_report(rows, result, out.with_suffix(".md"))
+        kept = ("run_seconds", "max_children", "commit", "date")
+        result.update({k: previous.get(k) for k in kept if previous.get(k)})
+    write_report(rows, result, out.with_suffix(".md"), justified)
     from report import write_and_log
 
     flat = {"detection_pct": result["total"]["detection_pct"], "score_pct": result["total"]["score_pct"],

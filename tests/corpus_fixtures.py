@@ -10,6 +10,7 @@ import gzip
 import os
 import pickle
 import shutil
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +24,36 @@ class Fixture:
     per_split: dict[str, int]
     bad: list[tuple[str, int | None, str]] = field(default_factory=list)  # (file, row, reason fragment)
     extra: dict = field(default_factory=dict)
+
+
+class _Python2Pickler(pickle._Pickler):
+    """Writes ``str`` and ``bytes`` as Python 2 wrote its 8-bit ``str`` (the SHORT_BINSTRING / BINSTRING opcodes of
+    ``pickletools``' table), text encoded with ``text_encoding``."""
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+    def __init__(self, fh, text_encoding: str):
+        super().__init__(fh, protocol=2)
+        self.text_encoding = text_encoding
+
+    def save_py2_str(self, obj):
+        data = obj.encode(self.text_encoding) if isinstance(obj, str) else bytes(obj)
+        if len(data) < 256:
+            self.write(pickle.SHORT_BINSTRING + bytes([len(data)]) + data)
+        else:
+            self.write(pickle.BINSTRING + struct.pack("<i", len(data)) + data)
+        self.memoize(obj)
+
+    dispatch[str] = save_py2_str
+    dispatch[bytes] = save_py2_str
+
+
+def write_python2_pickle(path: Path, obj: object, text_encoding: str) -> None:
+    """A protocol-2 pickle as Python 2 wrote it: its strings and array buffers are 8-bit strings (FLAME 2020's
+    ``generic_model.pkl`` holds latin-1 text; CSL-Daily's annotation pickles UTF-8 glosses). Python 3 reads such
+    strings with the ``encoding`` given to the unpickler."""
+    with open(path, "wb") as fh:
+        _Python2Pickler(fh, text_encoding).dump(obj)
 
 
 def write_frames(folder: Path, n: int = 2, suffix: str = ".png") -> None:

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import copy
 import pickle
-import struct
 
 import numpy as np
 import pytest
 import roma
 import torch
+from corpus_fixtures import write_python2_pickle
 
 from m3t.body.model_files import ModelFileError, load_model_arrays, load_pickle_safely
 from m3t.body.rotations import matrix_to_6d
@@ -76,33 +76,14 @@ def test_anny_identity_is_bounded_to_the_phenotype_range(body):
 
 
 # ------------------------------------------------------------------------------------------------ model files
-class _Python2Pickler(pickle._Pickler):
-    """Writes ``str`` and ``bytes`` as Python 2 wrote its ``str`` (SHORT_BINSTRING / BINSTRING opcodes of
-    Python's ``pickletools`` table), so the pickle reads like FLAME 2020's ``generic_model.pkl``: a protocol-2
-    Python-2 pickle whose keys and array buffers are 8-bit strings. FLAME's readers (soubhiksanyal/FLAME_PyTorch
-    ``flame.py``, Ribosome-rbx/PBNS ``preprocess.py`` for SMPL) load such files with
-    ``pickle.load(f, encoding='latin1')``."""
-
-    dispatch = dict(pickle._Pickler.dispatch)
-
-    def save_py2_str(self, obj):
-        data = obj.encode("latin1") if isinstance(obj, str) else bytes(obj)
-        if len(data) < 256:
-            self.write(pickle.SHORT_BINSTRING + bytes([len(data)]) + data)
-        else:
-            self.write(pickle.BINSTRING + struct.pack("<i", len(data)) + data)
-        self.memoize(obj)
-
-    dispatch[str] = save_py2_str
-    dispatch[bytes] = save_py2_str
-
-
 def test_python2_model_pickle_strings_are_read_as_latin1(tmp_path):
+    """The pickle reads like FLAME 2020's ``generic_model.pkl``: a protocol-2 Python-2 pickle whose keys and array
+    buffers are 8-bit strings. FLAME's readers (soubhiksanyal/FLAME_PyTorch ``flame.py``, Ribosome-rbx/PBNS
+    ``preprocess.py`` for SMPL) load such files with ``pickle.load(f, encoding='latin1')``."""
     rng = np.random.default_rng(0)
     arrays = {"v_template": rng.normal(size=(5, 3)), "f": np.array([[0, 1, 2], [2, 3, 4]], dtype=np.uint32)}
     path = tmp_path / "generic_model.pkl"
-    with open(path, "wb") as fh:
-        _Python2Pickler(fh, protocol=2).dump({**arrays, "bs_style": "lbs", "author": "Ren\xe9e"})
+    write_python2_pickle(path, {**arrays, "bs_style": "lbs", "author": "Ren\xe9e"}, "latin1")
     assert pickle.SHORT_BINSTRING + b"\x0av_template" in path.read_bytes()  # a Python 2 str, not unicode
     raw = load_pickle_safely(path)
     assert raw["bs_style"] == "lbs" and raw["author"] == "Ren\xe9e"  # 8-bit strings decoded as latin-1

@@ -516,6 +516,18 @@ def test_bleu_on_jieba_words_counts_each_word_as_one_token():
     assert bleu4([ref], [ref], method="zh") == pytest.approx(100.0)
 
 
+def _accumulated(c: np.ndarray) -> np.ndarray:
+    """The DTW table of ``c`` by the textbook recursion, one cell at a time, with an infinite border: cell
+    (i + 1, j + 1) is the cheapest cost of aligning frames 0..i with 0..j."""
+    t1, t2 = c.shape
+    acc = np.full((t1 + 1, t2 + 1), np.inf)
+    acc[0, 0] = 0.0
+    for i in range(t1):
+        for j in range(t2):
+            acc[i + 1, j + 1] = c[i, j] + min(acc[i, j], acc[i, j + 1], acc[i + 1, j])
+    return acc
+
+
 def test_every_path_is_a_monotone_walk_whose_costs_add_up_to_the_optimal_cost():
     """With continuous random costs (no ties) the optimal warping path is unique: every batched path must start at
     (0, 0), end at (T1 - 1, T2 - 1), move by one of the three DTW steps, and its costs must add up to the DP's
@@ -527,11 +539,7 @@ def test_every_path_is_a_monotone_walk_whose_costs_add_up_to_the_optimal_cost():
     costs = [rng.uniform(low, 1.0, size=s) for s in shapes for low in (0.1, -1.0) for _ in range(6)]
     for c, result in zip(costs, dtw_batch(costs)):
         t1, t2 = c.shape
-        acc = np.full((t1 + 1, t2 + 1), np.inf)
-        acc[0, 0] = 0.0
-        for i in range(t1):
-            for j in range(t2):
-                acc[i + 1, j + 1] = c[i, j] + min(acc[i, j], acc[i, j + 1], acc[i + 1, j])
+        acc = _accumulated(c)
         path = result.path
         assert path[0].tolist() == [0, 0] and path[-1].tolist() == [t1 - 1, t2 - 1], c.shape
         assert {tuple(s) for s in np.diff(path, axis=0).tolist()} <= {(1, 1), (1, 0), (0, 1)}, c.shape
@@ -550,11 +558,7 @@ def test_tied_steps_prefer_the_diagonal_then_the_previous_row_then_the_previous_
              for _ in range(60)]
     for c, result in zip(costs, dtw_batch(costs)):
         t1, t2 = c.shape
-        acc = np.full((t1 + 1, t2 + 1), np.inf)
-        acc[0, 0] = 0.0
-        for i in range(t1):
-            for j in range(t2):
-                acc[i + 1, j + 1] = c[i, j] + min(acc[i, j], acc[i, j + 1], acc[i + 1, j])
+        acc = _accumulated(c)
         i, j, walk = t1 - 1, t2 - 1, [(t1 - 1, t2 - 1)]
         while (i, j) != (0, 0):
             diag, up, left = acc[i, j], acc[i, j + 1], acc[i + 1, j]  # cells (i-1, j-1), (i-1, j), (i, j-1)

@@ -48,6 +48,7 @@ LAYOUT = ModalityLayout(
     ("height", "weight"))
 DIMS = {"body": LAYOUT.dims["body"], "hand": LAYOUT.dims["right_hand"], "face": LAYOUT.dims["face"]}
 
+TINY_VAE = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)  # the tokenizer-training tests' model
 
 def tiny_tokenizers(dims: dict[str, int] = DIMS, seed: int = 0) -> dict[str, MotionTokenizer]:
     """Untrained tokenizers of the three groups, with non-trivial normalisation statistics."""
@@ -936,7 +937,7 @@ def test_tokenizer_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_a
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
-    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    model_cfg = TINY_VAE
 
     def train(name, **kwargs):
         cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / name), epochs=2, warmup_epochs=1, batch_size=4, window=8,
@@ -1047,7 +1048,7 @@ def test_tokenizer_training_refuses_a_window_the_downsampling_does_not_divide(tm
     from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
-    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    model_cfg = TINY_VAE
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), window=model_cfg.downsample * 3 + 1, device="cpu")
     message = (f"tokenizer_train.window ({cfg.window}) must be a multiple of the downsampling factor "
                f"{model_cfg.downsample}")
@@ -1064,7 +1065,7 @@ def test_only_the_main_rank_records_and_saves_a_tokenizer_run(tmp_path):
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
-    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    model_cfg = TINY_VAE
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "rank1"), epochs=1, warmup_epochs=1, batch_size=4, window=8,
                                windows_per_clip=1, device="cpu")
     result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", dist_ctx=DistributedContext(rank=1),
@@ -1092,7 +1093,7 @@ def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
-    model_cfg = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)
+    model_cfg = TINY_VAE
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=3, warmup_epochs=1, batch_size=4, window=8,
                                windows_per_clip=1, eval_every=1, device="cpu")
     result = train_tokenizer("face", model_cfg, cfg, seqs, _Probe(), "v", progress=False)
@@ -1172,7 +1173,8 @@ def test_vq_defaults_are_the_papers_and_one_training_step_is_an_ema_update_by_ha
     sums = torch.stack([z[0], z[1] + z[2], z[3], torch.zeros(3)])
     torch.testing.assert_close(vq.ema_count, 0.99 * 5.0 + 0.01 * counts)
     torch.testing.assert_close(vq.ema_sum, 0.99 * 5.0 * codebook + 0.01 * sums)
-    torch.testing.assert_close(vq.codebook, (0.99 * 5.0 * codebook + 0.01 * sums) / (0.99 * 5.0 + 0.01 * counts)[:, None])
+    torch.testing.assert_close(vq.codebook,
+                               (0.99 * 5.0 * codebook + 0.01 * sums) / (0.99 * 5.0 + 0.01 * counts)[:, None])
     assert vq.last_resets == 0
 
 
@@ -1207,7 +1209,7 @@ def test_loading_a_missing_or_foreign_smlm_checkpoint_names_it_and_the_stage_to_
 
 def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, monkeypatch):
     import m3t.tokenizers.train as train_module
-    from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
+    from m3t.tokenizers.config import TokenizerTrainConfig
 
     seen: list[dict[str, float]] = []
     real_step = train_module.train_step
@@ -1223,7 +1225,7 @@ def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, mo
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
                                windows_per_clip=2, device="cpu")
-    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", progress=False)
     steps = len(seen) // 2
     assert steps >= 2 and len(seen) == 2 * steps and len(result.history) == 2
@@ -1251,7 +1253,7 @@ class _rest_RecordingDDP(torch.nn.Module):
 def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(tmp_path, monkeypatch, world_size):
     import m3t.tokenizers.train as train_module
     from m3t.runtime import DistributedContext
-    from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
+    from m3t.tokenizers.config import TokenizerTrainConfig
 
     nets = []
     real_step = train_module.train_step
@@ -1268,7 +1270,7 @@ def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(4)]
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
                                windows_per_clip=1, device="cpu")
-    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", dist_ctx=DistributedContext(0, world_size), progress=False)
     assert nets, "at least one training step"
     if world_size == 1:
@@ -1278,7 +1280,7 @@ def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(
         assert all(isinstance(net, _rest_RecordingDDP) and net.module is result.model for net in nets)
 
 
-# ---------------------------------------------------------------- padding, devices, step counts, sampler seeds, probe cap
+# ------------------------------------------------------------ padding, devices, step counts, sampler seeds, probe cap
 
 
 def test_padded_batch_gives_each_example_the_logits_it_gets_alone(smlm_parts):
@@ -1324,7 +1326,7 @@ def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(
     tok_cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "tok"), epochs=1, warmup_epochs=1, batch_size=4,
                                    window=8, windows_per_clip=1, device="cuda")
     with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
-        train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), tok_cfg,
+        train_tokenizer("face", TINY_VAE, tok_cfg,
                         [np.zeros((16, 3), dtype=np.float32)], None, "v", progress=False)
 
 
@@ -1338,7 +1340,7 @@ def test_tokenizer_checkpoints_count_every_optimiser_step_of_every_epoch(tmp_pat
     seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(5)]
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
                                windows_per_clip=1, device="cpu")
-    result = train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg, seqs, None,
+    result = train_tokenizer("face", TINY_VAE, cfg, seqs, None,
                              "v", progress=False)
     steps = len(WindowSampler(seqs, 8, 2, 1))
     assert steps == 3  # 5 crops in batches of 2
@@ -1367,7 +1369,7 @@ def test_tokenizer_training_draws_its_windows_from_the_configured_seed_and_its_r
     seqs = [rng.normal(size=(16 + 3 * i, 3)).astype(np.float32) for i in range(4)]
     cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
                                windows_per_clip=2, seed=7, device="cuda")  # across ranks: the group's device
-    result = train_module.train_tokenizer("face", VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1), cfg,
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", dist_ctx=DistributedContext(1, 2), progress=False)
     assert next(result.model.parameters()).device == torch.device("cpu")
     (sampler,) = samplers

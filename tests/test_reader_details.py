@@ -1244,46 +1244,26 @@ def test_soke_frames_keep_their_other_keys_and_may_not_mix_both_namings(tmp_path
     assert (err.value.file, err.value.key) == (file, "smplx_root_pose")
 
 
-class _fc_Python2Pickler(pickle._Pickler):
-    """Writes ``str`` and ``bytes`` as Python 2 wrote its 8-bit ``str`` (the SHORT_BINSTRING / BINSTRING opcodes
-    of ``pickletools``' table; text as UTF-8 bytes). Python 3 reads such strings with the ``encoding`` given to
-    the unpickler; ``numpy.load``'s documentation names ``encoding='latin1'`` as the one that reads Python 2
-    pickles holding numpy arrays."""
-
-    dispatch = dict(pickle._Pickler.dispatch)
-
-    def save_py2_str(self, obj):
-        data = obj.encode("utf-8") if isinstance(obj, str) else bytes(obj)
-        if len(data) < 256:
-            self.write(pickle.SHORT_BINSTRING + bytes([len(data)]) + data)
-        else:
-            self.write(pickle.BINSTRING + struct.pack("<i", len(data)) + data)
-        self.memoize(obj)
-
-    dispatch[str] = save_py2_str
-    dispatch[bytes] = save_py2_str
-
-
 def test_python2_corpus_pickles_decode_text_as_utf8_and_array_buffers_as_latin1(tmp_path):
     """Without numpy, 8-bit strings are text (UTF-8: a Chinese gloss survives); with numpy, they are decoded as
-    latin-1 so that an array's raw buffer (any byte values) rebuilds the array exactly."""
+    latin-1 so that an array's raw buffer (any byte values) rebuilds the array exactly (``numpy.load``'s
+    documentation names ``encoding='latin1'`` as the one that reads Python 2 pickles holding numpy arrays)."""
     path = tmp_path / "info.pkl"
-    with open(path, "wb") as fh:
-        _fc_Python2Pickler(fh, protocol=2).dump({"name": "S000000_P0000_T00", "label_word": ["谢谢", "你好"]})
+    fx.write_python2_pickle(path, {"name": "S000000_P0000_T00", "label_word": ["谢谢", "你好"]}, "utf-8")
     assert pickle.SHORT_BINSTRING + b"\x04name" in path.read_bytes()  # a Python 2 str, not unicode
     assert load_data_pickle(path, allow_numpy=False) == {"name": "S000000_P0000_T00", "label_word": ["谢谢", "你好"]}
 
     array = np.array([[0.5, -1.25, 3.0], [1e-3, 255.0, -7.5]], np.float32)  # buffer bytes above 0x7f
     assert max(array.tobytes()) > 0x7F
-    with open(path, "wb") as fh:
-        _fc_Python2Pickler(fh, protocol=2).dump({"sign": array})
+    fx.write_python2_pickle(path, {"sign": array}, "utf-8")
     loaded = load_data_pickle(path, allow_numpy=True)
     assert loaded["sign"].dtype == np.float32
     np.testing.assert_array_equal(loaded["sign"], array)
     with pytest.raises(CorpusError) as err:
         load_data_pickle(path, allow_numpy=False)
     message = str(err.value)
-    assert message.startswith(f"{path}: the pickle references numpy.") and "a non-data class, and was refused" in message
+    assert message.startswith(f"{path}: the pickle references numpy.")
+    assert "a non-data class, and was refused" in message
     assert "Re-save it holding only builtin containers, numbers, strings." in message
 
 
@@ -1338,12 +1318,14 @@ def test_soke_annotation_language_and_signer_override_the_defaults(tmp_path):
         ("b1_0-8-rgb_front", "DGS", "Signer05", "soke_smplx"), ("c1_3-5-rgb_front", "GSL", "unknown", "soke_smplx")]
 
 
-def test_how2sign_refuses_a_non_positive_frame_rate_naming_the_option():
-    for fps in (0.0, -24.0):
+@pytest.mark.parametrize("config, option, bad, good", [(How2SignConfig, "how2sign", (0.0, -24.0), 30.0),
+                                                      (CslDailyConfig, "csl_daily", (0, -30.0), 25.0)])
+def test_video_corpora_refuse_a_non_positive_frame_rate_naming_the_option(config, option, bad, good):
+    for fps in bad:
         with pytest.raises(ValueError) as err:
-            How2SignConfig(fps=fps)
-        assert str(err.value) == f"corpora.how2sign.fps must be > 0, got {fps}"
-    assert How2SignConfig(fps=30.0).fps == 30.0
+            config(fps=fps)
+        assert str(err.value) == f"corpora.{option}.fps must be > 0, got {fps}"
+    assert config(fps=good).fps == good
 
 
 def test_csl_daily_info_entry_that_is_not_a_dict_names_its_type_and_the_keys_expected():
@@ -1427,14 +1409,6 @@ def test_mouthings_run_one_to_three_visemes():
 
 
 # ----------------------------------------------------------------------------------------- more reader details
-def test_csl_daily_refuses_a_non_positive_frame_rate_naming_the_option():
-    for fps in (0, -30.0):
-        with pytest.raises(ValueError) as err:
-            CslDailyConfig(fps=fps)
-        assert str(err.value) == f"corpora.csl_daily.fps must be > 0, got {fps}"
-    assert CslDailyConfig(fps=25.0).fps == 25.0
-
-
 def test_csl_daily_info_entry_that_is_not_a_dict_is_quarantined_and_clips_keep_their_length(tmp_path):
     """An ``info`` list (see ``build_csl_daily``) with a bare name string among the release's dict records."""
     fx.build_csl_daily(tmp_path)
@@ -1497,8 +1471,8 @@ def test_how2sign_row_without_sentence_name_is_quarantined_and_a_bad_header_gets
     message = str(err.value)
     assert message.startswith(f"{path} line 1: header is ")
     assert message.endswith("Is this a How2Sign realigned CSV (tab-separated)? Point the corpus root at the How2Sign "
-                            "folder, or set option annotations_dir to the folder holding how2sign_realigned_<split>.csv "
-                            "and clips_dir to the sentence clip folders.")
+                            "folder, or set option annotations_dir to the folder holding "
+                            "how2sign_realigned_<split>.csv and clips_dir to the sentence clip folders.")
 
 
 def test_phoenix_row_without_name_leaves_the_rows_after_it_listed(tmp_path):
