@@ -9,7 +9,8 @@ the JPE cost matrices, DP, raw and path-normalised cost and path of the 3 region
   configuration), zero-padded into batches of 16 pairs, numpy anti-diagonal DP and vectorised backtrack;
 - new: ``m3t.metrics.kernels.dtw_jobs`` (cost matrix, DP and backtrack fused per job, jobs in parallel on
   a thread pool), after a warm-up: the compile is timed apart, cold (empty cache) and from the on-disk cache,
-  each in a fresh interpreter;
+  each in a fresh interpreter; each point distance's square root in float32 (the default ``root_precision``),
+  and the same kernels with a float64 root (``new_float64_root``), so the root's share is measured;
 - checks: max |raw cost new - old| and the share of identical paths over all jobs; the raw costs of
   ``--baseline-pairs`` pairs against an independent numpy baseline (batched ``np.linalg.svd`` Procrustes,
   pure-Python DP); the end-to-end ``evaluate_pairs`` rate (both metrics, default config);
@@ -98,8 +99,9 @@ def old_arm(pairs: list[tuple[dict, dict]], procrustes: bool, workers: int) -> l
     return results
 
 
-def new_arm(pairs: list[tuple[dict, dict]], procrustes: bool) -> list[DTWResult]:
-    return kernels.dtw_jobs([kernels.CostJob(p[r], g[r], procrustes) for p, g in pairs for r in REGIONS])
+def new_arm(pairs: list[tuple[dict, dict]], procrustes: bool, root_precision: str = "float32") -> list[DTWResult]:
+    return kernels.dtw_jobs([kernels.CostJob(p[r], g[r], procrustes) for p, g in pairs for r in REGIONS],
+                            root_precision=root_precision)
 
 
 def gpu_arm(pairs: list[tuple[dict, dict]], device: str, batch: int) -> list[DTWResult]:
@@ -215,7 +217,9 @@ def main() -> None:
     for metric, procrustes in (("jpe", False), ("pa", True)):
         old_s, old = best_seconds(lambda: old_arm(pairs, procrustes, args.threads), 1 if procrustes else 3)
         new_s, new = best_seconds(lambda: new_arm(pairs, procrustes), args.repeats)
+        wide_s, wide = best_seconds(lambda: new_arm(pairs, procrustes, "float64"), args.repeats)
         diff, same = agreement(new, old)
+        wide_diff, wide_same = agreement(wide, old)
         reference = baseline_costs(pairs[:args.baseline_pairs], procrustes)
         result.update({
             f"{metric}_old_pairs_per_s": args.pairs / old_s,
@@ -225,6 +229,12 @@ def main() -> None:
             f"{metric}_goal_met": args.pairs / new_s >= GOALS[metric],
             f"{metric}_max_abs_cost_difference_new_vs_old_m": diff,
             f"{metric}_identical_paths_new_vs_old": same,
+            f"{metric}_max_rel_cost_difference_new_vs_old": max(
+                abs(a.cost_raw - b.cost_raw) / b.cost_raw for a, b in zip(new, old) if b.cost_raw > 0),
+            f"{metric}_new_float64_root_pairs_per_s": args.pairs / wide_s,
+            f"{metric}_speedup_float32_vs_float64_root": wide_s / new_s,
+            f"{metric}_max_abs_cost_difference_new_float64_root_vs_old_m": wide_diff,
+            f"{metric}_identical_paths_new_float64_root_vs_old": wide_same,
             f"{metric}_max_abs_cost_difference_new_vs_numpy_baseline_m": max(
                 abs(a.cost_raw - b) for a, b in zip(new, reference)),
         })
@@ -257,7 +267,8 @@ def main() -> None:
     result.update({
         "old": f"torch cost matrices ({args.threads} worker threads x 1 torch thread), numpy anti-diagonal DP + "
                "vectorised backtrack, batches of 16 pairs",
-        "new": "numba kernels: cost matrix + DP + backtrack fused per job, jobs on a thread pool",
+        "new": "numba kernels: cost matrix + DP + backtrack fused per job, jobs on a thread pool, each point "
+               "distance's square root in float32 (the default; new_float64_root: in float64)",
         "new_threads": kernels.available_cores(),
         "machine": platform.machine(),
         "cpu_count": os.cpu_count(),

@@ -22,6 +22,7 @@ from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
 from m3t.runtime import jit
 
 LENGTHS = [(1, 1), (1, 6), (5, 1), (7, 7), (9, 4), (6, 13), (31, 24)]
+ROOT_BOUND = 1.5 * 2.0 ** -24  # relative error of a float32 square root of a float64 square
 T = torch.as_tensor
 
 
@@ -70,10 +71,34 @@ def test_dtw_costs_rejects_bad_matrices_naming_them():
 def test_cost_matrices_match_torch(points, measure, t1, t2):
     rng = np.random.default_rng(t1 * 100 + t2 + points)
     pred, gt = motion(rng, t1, points), motion(rng, t2, points)
-    np.testing.assert_allclose(kernels.jpe_cost_matrix(pred, gt, measure),
-                               jpe_distance_matrix(T(pred), T(gt), measure=measure).numpy(), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(kernels.pa_cost_matrix(pred, gt, measure),
-                               pa_distance_matrix(T(pred), T(gt), measure=measure).numpy(), rtol=0, atol=1e-12)
+    jpe = jpe_distance_matrix(T(pred), T(gt), measure=measure).numpy()
+    pa = pa_distance_matrix(T(pred), T(gt), measure=measure).numpy()
+    np.testing.assert_allclose(kernels.jpe_cost_matrix(pred, gt, measure, "float64"), jpe, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(kernels.pa_cost_matrix(pred, gt, measure, "float64"), pa, rtol=0, atol=1e-12)
+    # the default float32 root: within its bound of 1.5 x 2^-24 relative
+    np.testing.assert_allclose(kernels.jpe_cost_matrix(pred, gt, measure), jpe, rtol=ROOT_BOUND, atol=0)
+    np.testing.assert_allclose(kernels.pa_cost_matrix(pred, gt, measure), pa, rtol=ROOT_BOUND, atol=1e-12)
+
+
+def test_the_float32_root_is_used_by_default_and_the_precision_is_checked():
+    rng = np.random.default_rng(11)
+    pred, gt = motion(rng, 30, 21), motion(rng, 40, 21)
+    single, double = kernels.jpe_cost_matrix(pred, gt), kernels.jpe_cost_matrix(pred, gt, root_precision="float64")
+    squares = np.square((pred - pred[:, :1])[:, None] - (gt - gt[:, :1])[None]).sum(-1)  # (T1, T2, K)
+    rooted32 = np.sqrt(squares.astype(np.float32)).astype(np.float64).mean(-1)  # the root point counts as 0
+    assert np.abs(single - double).max() > 0  # the float32 root rounds differently somewhere
+    np.testing.assert_allclose(single, rooted32, rtol=1e-12)  # and is exactly that rounding, length by length
+    assert np.abs(single / double - 1).max() < ROOT_BOUND
+    pa_single = kernels.pa_cost_matrix(pred, gt)
+    assert np.abs(pa_single - kernels.pa_cost_matrix(pred, gt, root_precision="float64")).max() > 0
+    for bad in ("float16", "half"):
+        with pytest.raises(ValueError, match=f"root precision '{bad}' unknown"):
+            kernels.dtw_jobs([kernels.CostJob(pred, gt, False)], root_precision=bad)
+    with pytest.raises(ValueError, match="root_precision 'double' unknown"):
+        MotionMetricsConfig(root_precision="double")  # type: ignore[arg-type]
+    assert MotionMetricsConfig().root == "float32" and MotionMetricsConfig(mode="soke_exact").root == "float64"
+    assert MotionMetricsConfig(mode="soke_exact", root_precision="float32").root == "float32"
+    assert MotionMetricsConfig(root_precision="float64").root == "float64"
 
 
 def reference_pa(x: np.ndarray, y: np.ndarray) -> float:
@@ -98,7 +123,7 @@ def test_pa_cost_matches_on_degenerate_frames():
     gt[4, :, 2] = 0.0  # planar
     line_gt = collinear(rng, 5, 21)
     for p, g in ((pred, gt), (gt, pred), (pred, line_gt), (pred, pred)):
-        ours = kernels.pa_cost_matrix(p, g)
+        ours = kernels.pa_cost_matrix(p, g, root_precision="float64")
         reference = np.array([[reference_pa(x, y) for y in g] for x in p])
         np.testing.assert_allclose(ours, reference, rtol=0, atol=1e-8)
         np.testing.assert_allclose(ours, pa_distance_matrix(T(p), T(g)).numpy(), rtol=0, atol=1e-6)
@@ -137,10 +162,12 @@ def test_fused_jobs_match_torch_costs_and_numpy_paths():
     jobs += [kernels.CostJob(same, same, False), kernels.CostJob(same, same, True)]
     references = dtw_batch([(pa_distance_matrix if job.procrustes else jpe_distance_matrix)(
         T(job.pred), T(job.gt), measure=job.measure) for job in jobs])
-    results = kernels.dtw_jobs(jobs)
-    for ours, ref in zip(results, references, strict=True):
+    results = kernels.dtw_jobs(jobs, root_precision="float64")
+    for ours, single, ref in zip(results, kernels.dtw_jobs(jobs), references, strict=True):
         assert ours.cost_raw == pytest.approx(ref.cost_raw, abs=1e-10)
         np.testing.assert_array_equal(ours.path, ref.path)
+        assert single.cost_raw == pytest.approx(ref.cost_raw, rel=ROOT_BOUND, abs=1e-12)
+        np.testing.assert_array_equal(single.path, ref.path)
     jpe_self, pa_self = results[-2:]
     assert jpe_self.cost_raw == 0.0 and pa_self.cost_raw < 1e-10  # a sequence against itself
     np.testing.assert_array_equal(jpe_self.path, np.stack([np.arange(15)] * 2, 1))
@@ -163,12 +190,15 @@ def test_evaluate_pairs_gives_the_same_metrics_with_both_backends(mode):
     rng = np.random.default_rng(7)
     body = 12 if mode == "m3t" else 20  # soke_exact: root, 12 measured points, further fitted points
     pairs = [(regions(rng, t1, body), regions(rng, t2, body)) for t1, t2 in ((1, 5), (23, 19), (12, 30), (8, 8))]
-    numba_metrics = evaluate_pairs(pairs, config=MotionMetricsConfig(mode=mode, batch_pairs=3))
+    numba_metrics = evaluate_pairs(pairs, config=MotionMetricsConfig(mode=mode, batch_pairs=3,
+                                                                     root_precision="float64"))
+    single_metrics = evaluate_pairs(pairs, config=MotionMetricsConfig(mode=mode, batch_pairs=3))
     torch_metrics = evaluate_pairs(pairs, config=MotionMetricsConfig(mode=mode, backend="torch", workers=2))
-    for ours, ref in zip(numba_metrics, torch_metrics, strict=True):
-        assert ours.keys() == ref.keys() and "dtw_pa_jpe_body_pathnorm_m" in ours
+    for ours, single, ref in zip(numba_metrics, single_metrics, torch_metrics, strict=True):
+        assert ours.keys() == ref.keys() == single.keys() and "dtw_pa_jpe_body_pathnorm_m" in ours
         for name in ref:
             assert ours[name] == pytest.approx(ref[name], abs=1e-10), name
+            assert single[name] == pytest.approx(ref[name], rel=ROOT_BOUND, abs=1e-12), name
 
 
 def test_batched_pa_on_padded_pairs_matches_one_pair_at_a_time():
@@ -201,7 +231,7 @@ def test_backend_and_device_are_checked():
 def test_without_numba_the_numba_backend_names_the_package_and_torch_still_scores(monkeypatch):
     rng = np.random.default_rng(9)
     pairs = [(regions(rng, 6), regions(rng, 5))]
-    expected = evaluate_pairs(pairs)
+    expected = evaluate_pairs(pairs, config=MotionMetricsConfig(root_precision="float64"))
     monkeypatch.delitem(sys.modules, "m3t.metrics.kernels")  # forget the imported module, so it is imported again
     monkeypatch.delattr(m3t.metrics, "kernels")
     monkeypatch.setitem(sys.modules, "numba", None)  # import numba now fails as if it were not installed

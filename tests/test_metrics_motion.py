@@ -598,7 +598,7 @@ def test_torch_backend_workers_compute_cost_matrices_on_that_many_threads_with_t
 
     rng = np.random.default_rng(4)
     pairs = [(regions(rng, t1), regions(rng, t2)) for t1, t2 in [(5, 7), (6, 4), (3, 3)]]
-    reference = motion.evaluate_pairs(pairs)  # numba kernels
+    reference = motion.evaluate_pairs(pairs, config=motion.MotionMetricsConfig(root_precision="float64"))  # numba
     threads: list[str] = []
     lock = threading.Lock()
 
