@@ -167,7 +167,8 @@ def test_modes_agree_while_the_spine_is_fixed_and_differ_once_it_moves(fx, soke_
     Both modes root in float64 here (``soke_exact``'s default), so the comparison is of the rooting alone."""
     ident = fx.default_identity().numpy()
     (pred, ref) = pairs[0]
-    ours = MotionScorer(fx, MotionMetricsConfig(root_precision="float64")).score([MotionPair("c", "g", pred, ident, ref)]).per_clip[0].metrics
+    double = MotionMetricsConfig(root_precision="float64")
+    ours = MotionScorer(fx, double).score([MotionPair("c", "g", pred, ident, ref)]).per_clip[0].metrics
     soke = soke_scorer.score([MotionPair("c", "g", pred, ident, ref)]).per_clip[0].metrics
     for name in ("dtw_jpe_body_m", "dtw_jpe_left_hand_m", "dtw_jpe_right_hand_m", "dtw_pa_jpe_left_hand_m"):
         assert soke[name] == pytest.approx(ours[name], rel=0, abs=1e-12), name

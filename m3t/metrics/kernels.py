@@ -25,7 +25,8 @@ the jobs evenly by count up front, and on a shared machine the thread whose core
 Why a float32 root: DTW-JPE is bound by its square roots (3.2 M per 250-frame pair of body + hands), and a
 vector instruction takes twice as many float32 roots at the same throughput; the squares, sums, means and the
 DP stay float64, so a cost moves by less than 1.5 x 2^-24 relative (9e-9 m on a 0.1 m cost; lengths within
-float32's range, 1e-19 to 1e19 m), far below any digit a table reports. ``root_precision="float64"`` gives the torch path's arithmetic to ~1e-15.
+float32's range, 1e-19 to 1e19 m), far below any digit a table reports. ``root_precision="float64"`` gives
+the torch path's arithmetic to ~1e-15.
 
 Compiled functions are cached on disk (``cache=True``: compiled once per machine); where no cache directory is
 writable (a read-only install and home, no ``NUMBA_CACHE_DIR``) they compile once per process instead.
