@@ -57,9 +57,17 @@ def test_forward_matches_anny_reference(body):
     assert torch.allclose(ours.joints, ref["bone_poses"][..., :3, 3], atol=1e-5)
 
 
-def test_sparse_forward_equals_full_forward(body):
+@pytest.mark.parametrize("reference", ["anny", "none"])
+@pytest.mark.parametrize("per_frame_identity", [False, True])
+def test_sparse_forward_equals_full_forward(body, monkeypatch, reference, per_frame_identity):
+    """The keypoint path's own kinematics (matmul products) against Anny's full forward, with Anny's reference
+    bone orientations and without (a rig that has none: the rest orientations serve), for one identity and
+    for one per frame."""
+    if reference == "none":
+        monkeypatch.setitem(body._anny._buffers, "reference_bone_orientations", None)
     params = random_params(body, 2, seed=3)
-    identity = body.default_identity()
+    identity = torch.tensor([[0.2, 0.7, 0.4, 0.6, 0.3, 0.5], [0.8, 0.3, 0.5, 0.1, 0.9, 0.4]]) if per_frame_identity \
+        else body.default_identity()
     vertices = np.array([0, 100, 5000, 13000, 7777])
     bones = np.array([body.joint_names.index(n) for n in ("wrist.L", "head", "finger2-3.R")])
     corr = Correspondence(
