@@ -22,6 +22,23 @@ def random_params(body, batch, scale=0.4, seed=0):
     return params
 
 
+def test_the_model_is_built_to_the_same_bits_whatever_the_thread_count():
+    """Processes differ in their thread count (spawned fit workers run one): every built buffer must not."""
+    from m3t.body.anny_body import AnnyBody
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        two = AnnyBody()
+        torch.set_num_threads(1)
+        one = AnnyBody()
+        assert torch.get_num_threads() == 1  # the build restores the caller's count
+    finally:
+        torch.set_num_threads(before)
+    for (name, a), (_, b) in zip(two.named_buffers(), one.named_buffers(), strict=True):
+        assert torch.equal(a, b), name
+
+
 def test_layout_dims(body):
     assert body.layout.dims == {"body": 72, "left_hand": 90, "right_hand": 90, "face": 52}
     assert body.layout.identity_dim == 6

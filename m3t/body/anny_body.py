@@ -138,8 +138,15 @@ class AnnyBody(torch.nn.Module):
         # Anny's identity rotations give its reference posture, which differs from the template mesh by up to
         # ~1.5 cm at the arms. We define the rest pose as the template instead: every bone starts from its
         # template rotation (bones outside the streams keep it), so rest parameters reproduce the template.
-        rest = self._rest_bones(self._identity_coeffs(self.default_identity()))
-        base = model.get_pose_parameterization({"rest_bone_poses": rest, "bone_poses": rest}, "local-ref")[0]
+        # Float reductions: on one thread, so that every process gets the same bits whatever its thread count
+        # (a base built on 2 threads moved simulated keypoints by up to 1e-4 px, and with them fits and shards).
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            rest = self._rest_bones(self._identity_coeffs(self.default_identity()))
+            base = model.get_pose_parameterization({"rest_bone_poses": rest, "bone_poses": rest}, "local-ref")[0]
+        finally:
+            torch.set_num_threads(threads)
         base[0] = torch.eye(4)  # the root stays at the origin; the camera carries the global placement
         base[:, :3, 3] = 0.0
         self.register_buffer("base_delta", base, persistent=False)  # (J, 4, 4)
