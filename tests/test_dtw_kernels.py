@@ -16,7 +16,7 @@ import torch
 
 import m3t.metrics
 from m3t.metrics import kernels
-from m3t.metrics.dtw import dtw_batch, jpe_distance_matrix
+from m3t.metrics.dtw import accumulate, dtw_batch, jpe_distance_matrix
 from m3t.metrics.motion import MotionMetricsConfig, _batched_pa, _validated, evaluate_pairs
 from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
 from m3t.runtime import jit
@@ -55,6 +55,19 @@ def test_dp_and_backtrack_are_bit_identical_to_the_numpy_sweep(integer_costs):
         assert ours.cost_raw == ref.cost_raw
         np.testing.assert_array_equal(ours.path, ref.path)
         assert ours.path_length == ref.path_length == len(ours.path)
+
+
+@pytest.mark.parametrize("shape", [(1, 7), (4, 1), (5, 1), (6, 2), (9, 3), (8, 4), (13, 5), (250, 250), (251, 17)])
+def test_blocked_sweep_gives_the_numpy_table_bit_for_bit(shape):
+    """Rows accumulated four at a time as a wavefront, and one at a time for the rest: the whole table, every
+    cell, equals the numpy anti-diagonal sweep; integer costs make ties everywhere."""
+    rng = np.random.default_rng(shape[0] * 1000 + shape[1])
+    for cost in (rng.random(shape), rng.integers(0, 3, size=shape).astype(float)):
+        table, done = cost.copy(), 0
+        for i in range(shape[0]):
+            done = kernels._sweep_pending(table, i, done)
+        assert done == shape[0]
+        np.testing.assert_array_equal(table, accumulate(cost[..., None].copy())[..., 0])
 
 
 def test_dtw_costs_rejects_bad_matrices_naming_them():

@@ -76,6 +76,40 @@ def _sweep_row(table, i):
 
 
 @jit()
+def _sweep_block(table, i0):
+    """Accumulate rows ``i0`` .. ``i0 + 3`` in place (``i0 >= 1``, the rows above accumulated), as four
+    :func:`_sweep_row` calls would, bit for bit: each cell sees the same three neighbours and one addition. A
+    row's cells form a chain (cell j waits for cell j - 1), so the four rows advance as a wavefront, row r at
+    column s - r, and the four independent chains overlap in the pipeline."""
+    t2 = table.shape[1]
+    for r in range(4):
+        table[i0 + r, 0] += table[i0 + r - 1, 0]
+    for s in range(1, t2 + 3):
+        for r in range(4):  # unrolled by the compiler; the bounds only bite in the first and last 3 steps
+            j = s - r
+            if 1 <= j < t2:
+                up, row = table[i0 + r - 1], table[i0 + r]
+                row[j] += min(min(up[j], up[j - 1]), row[j - 1])
+
+
+@jit()
+def _sweep_pending(table, i, done):
+    """Accumulate the rows ``done`` .. ``i`` once row ``i`` is written: in blocks of four as they fill up, and
+    the rest at the last row. Returns the rows accumulated so far."""
+    if done == 0:
+        _sweep_row(table, 0)
+        done = 1
+    if i - done + 1 == 4:
+        _sweep_block(table, done)
+        done += 4
+    if i == table.shape[0] - 1:
+        while done <= i:
+            _sweep_row(table, done)
+            done += 1
+    return done
+
+
+@jit()
 def _backtrack(table, path):
     """Optimal path of an accumulated (T1, T2) table into ``path`` (>= T1 + T2 - 1, 2), from (0, 0); returns L."""
     t1, t2 = table.shape
@@ -136,7 +170,17 @@ def _jpe_row(x, y, i, out, single):
     """Row ``i`` of the JPE cost matrix into ``out`` (T2,): mean over K' of |x[i, k] - y[k, :, j]|."""
     kk, t2 = y.shape[0], y.shape[2]
     out[:] = 0.0
-    for k in range(kk):
+    k = 0
+    while k + 2 <= kk:  # two points per pass: half the loads and stores of ``out``
+        x0, x1, x2 = x[i, k, 0], x[i, k, 1], x[i, k, 2]
+        u0, u1, u2 = x[i, k + 1, 0], x[i, k + 1, 1], x[i, k + 1, 2]
+        y0, y1, y2 = y[k, 0], y[k, 1], y[k, 2]
+        v0, v1, v2 = y[k + 1, 0], y[k + 1, 1], y[k + 1, 2]
+        for j in range(t2):
+            out[j] += (_length(x0 - y0[j], x1 - y1[j], x2 - y2[j], single)
+                       + _length(u0 - v0[j], u1 - v1[j], u2 - v2[j], single))
+        k += 2
+    if k < kk:
         x0, x1, x2 = x[i, k, 0], x[i, k, 1], x[i, k, 2]
         y0, y1, y2 = y[k, 0], y[k, 1], y[k, 2]
         for j in range(t2):
@@ -389,19 +433,20 @@ def _point_job(pred, gt, kind, m0, m1, single, accumulate, path):
     table and the path length L (0 without)."""
     t1, t2 = pred.shape[0], gt.shape[0]
     table = np.empty((t1, t2))
+    done = 0  # rows accumulated
     if kind == JPE:
         x, y = _jpe_prepare(pred, gt, m0, m1)
         for i in range(t1):
             _jpe_row(x, y, i, table[i], single)
             if accumulate:
-                _sweep_row(table, i)
+                done = _sweep_pending(table, i, done)
     else:
         xs, ys, var_s, var_t = _pa_prepare(pred, gt)
         work = np.empty((25, t2))
         for i in range(t1):
             _pa_row(xs, ys, var_s, var_t, i, m0, m1, work, table[i], single)
             if accumulate:
-                _sweep_row(table, i)
+                done = _sweep_pending(table, i, done)
     return table, _backtrack(table, path) if accumulate else 0
 
 
@@ -409,8 +454,9 @@ def _point_job(pred, gt, kind, m0, m1, single, accumulate, path):
 def _cost_job(cost, path):
     """DP + backtrack of a given (T1, T2) cost matrix (left unchanged): raw cost and path length."""
     table = cost.copy()
+    done = 0
     for i in range(table.shape[0]):
-        _sweep_row(table, i)
+        done = _sweep_pending(table, i, done)
     return table[-1, -1], _backtrack(table, path)
 
 
