@@ -11,7 +11,8 @@ except, by default, the square root of each point distance (``root_precision``):
   eigenvalue method on Horn's matrix (no LAPACK, so no scipy at run time), the role ``torch.linalg.svd`` plays
   there; then the mean point distance after alignment (``pa_distance_matrix``);
 - DP: ``D[i, j] = c(i, j) + min(D[i-1, j], D[i, j-1], D[i-1, j-1])``, first row and column cumulative sums, swept
-  row by row (bit-identical to ``dtw.accumulate``: each cell sees the same three neighbours and one addition);
+  four rows at a time as a wavefront (bit-identical to ``dtw.accumulate``: each cell sees the same three
+  neighbours and one addition);
   the backtrack prefers the diagonal, then ``i - 1``, then ``j - 1`` (``dtw.backtrack``'s rule).
 
 Why fused: a pair's cost row ``i`` is computed straight into row ``i`` of its table and accumulated there, so no
