@@ -50,6 +50,21 @@ DIMS = {"body": LAYOUT.dims["body"], "hand": LAYOUT.dims["right_hand"], "face": 
 
 TINY_VAE = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)  # the tokenizer-training tests' model
 
+
+def tiny_face_clips(count: int) -> list[np.ndarray]:
+    """``count`` random 16-frame clips of ``TINY_VAE``'s 3-dim stream, seed 0."""
+    rng = np.random.default_rng(0)
+    return [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(count)]
+
+
+def tiny_train_cfg(cache_dir, epochs: int, batch_size: int, windows_per_clip: int = 1, **extra):
+    """The tokenizer-training tests' config: 8-frame windows, one warm-up epoch, on the CPU unless ``extra``
+    names a device."""
+    from m3t.tokenizers.config import TokenizerTrainConfig
+
+    return TokenizerTrainConfig(cache_dir=str(cache_dir), epochs=epochs, warmup_epochs=1, batch_size=batch_size,
+                                window=8, windows_per_clip=windows_per_clip, **{"device": "cpu", **extra})
+
 def tiny_tokenizers(dims: dict[str, int] = DIMS, seed: int = 0) -> dict[str, MotionTokenizer]:
     """Untrained tokenizers of the three groups, with non-trivial normalisation statistics."""
     torch.manual_seed(seed)
@@ -931,17 +946,14 @@ def test_vq_tokenizer_uses_the_configured_commitment_weight_and_ema_decay():
 
 def test_tokenizer_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_asked(tmp_path, capfd):
     from m3t.runtime import DistributedContext
-    from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    seqs = tiny_face_clips(3)
     model_cfg = TINY_VAE
 
     def train(name, **kwargs):
-        cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / name), epochs=2, warmup_epochs=1, batch_size=4, window=8,
-                                   windows_per_clip=1, device="cpu")
+        cfg = tiny_train_cfg(tmp_path / name, 2, 4)
         capfd.readouterr()
         result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", **kwargs)
         return result, capfd.readouterr().err
@@ -1059,28 +1071,23 @@ def test_tokenizer_training_refuses_a_window_the_downsampling_does_not_divide(tm
 
 def test_only_the_main_rank_records_and_saves_a_tokenizer_run(tmp_path):
     from m3t.runtime import DistributedContext
-    from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    seqs = tiny_face_clips(3)
     model_cfg = TINY_VAE
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "rank1"), epochs=1, warmup_epochs=1, batch_size=4, window=8,
-                               windows_per_clip=1, device="cpu")
+    cfg = tiny_train_cfg(tmp_path / "rank1", 1, 4)
     result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", dist_ctx=DistributedContext(rank=1),
                              progress=False)
     assert result.history == [] and not result.best
     assert not result.best_path.exists() and not result.last_path.exists()
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "rank0"), epochs=1, warmup_epochs=1, batch_size=4, window=8,
-                               windows_per_clip=1, device="cpu")
+    cfg = tiny_train_cfg(tmp_path / "rank0", 1, 4)
     result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", progress=False)
     assert [sorted(k for k in r if k.startswith("train_recon")) for r in result.history] == [["train_recon_mse"]]
     assert result.best_path.exists() and result.last_path.exists()
 
 
 def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp_path):
-    from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
     class _Probe:  # stands in for the reconstruction probe: a fixed vertex error per evaluation
@@ -1091,11 +1098,9 @@ def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp
             return {"vpe_mm": next(self.values)}
 
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
+    seqs = tiny_face_clips(3)
     model_cfg = TINY_VAE
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=3, warmup_epochs=1, batch_size=4, window=8,
-                               windows_per_clip=1, eval_every=1, device="cpu")
+    cfg = tiny_train_cfg(tmp_path, 3, 4, eval_every=1)
     result = train_tokenizer("face", model_cfg, cfg, seqs, _Probe(), "v", progress=False)
     assert [r["val_vpe_mm"] for r in result.history] == [1.0, 9.0, 9.0]
     assert result.best["epoch"] == 1 and result.best["val_vpe_mm"] == 1.0
@@ -1209,7 +1214,6 @@ def test_loading_a_missing_or_foreign_smlm_checkpoint_names_it_and_the_stage_to_
 
 def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, monkeypatch):
     import m3t.tokenizers.train as train_module
-    from m3t.tokenizers.config import TokenizerTrainConfig
 
     seen: list[dict[str, float]] = []
     real_step = train_module.train_step
@@ -1221,10 +1225,8 @@ def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, mo
 
     monkeypatch.setattr(train_module, "train_step", recording_step)
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(3)]
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
-                               windows_per_clip=2, device="cpu")
+    seqs = tiny_face_clips(3)
+    cfg = tiny_train_cfg(tmp_path, 2, 2, windows_per_clip=2)
     result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", progress=False)
     steps = len(seen) // 2
@@ -1253,7 +1255,6 @@ class _rest_RecordingDDP(torch.nn.Module):
 def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(tmp_path, monkeypatch, world_size):
     import m3t.tokenizers.train as train_module
     from m3t.runtime import DistributedContext
-    from m3t.tokenizers.config import TokenizerTrainConfig
 
     nets = []
     real_step = train_module.train_step
@@ -1266,10 +1267,8 @@ def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(
     monkeypatch.setattr(train_module, "DistributedDataParallel", _rest_RecordingDDP)
     monkeypatch.setattr(train_module, "train_step", recording_step)
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(4)]
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
-                               windows_per_clip=1, device="cpu")
+    seqs = tiny_face_clips(4)
+    cfg = tiny_train_cfg(tmp_path, 1, 2)
     result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", dist_ctx=DistributedContext(0, world_size), progress=False)
     assert nets, "at least one training step"
@@ -1315,7 +1314,6 @@ def test_padded_batch_gives_each_example_the_logits_it_gets_alone(smlm_parts):
 def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(smlm_parts, tmp_path):
     from m3t.smlm.config import SMLMTrainConfig
     from m3t.smlm.train import train_smlm
-    from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
     model, vocab, examples = smlm_parts
@@ -1323,8 +1321,7 @@ def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(
     with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
         train_smlm(model.cfg, cfg, vocab, examples, None, "v", tmp_path / "best.pt", progress=False)
     assert not (tmp_path / "best.pt").exists()
-    tok_cfg = TokenizerTrainConfig(cache_dir=str(tmp_path / "tok"), epochs=1, warmup_epochs=1, batch_size=4,
-                                   window=8, windows_per_clip=1, device="cuda")
+    tok_cfg = tiny_train_cfg(tmp_path / "tok", 1, 4, device="cuda")
     with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
         train_tokenizer("face", TINY_VAE, tok_cfg,
                         [np.zeros((16, 3), dtype=np.float32)], None, "v", progress=False)
@@ -1332,14 +1329,11 @@ def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(
 
 def test_tokenizer_checkpoints_count_every_optimiser_step_of_every_epoch(tmp_path):
     from m3t.tokenizers.checkpoint import load_tokenizer
-    from m3t.tokenizers.config import TokenizerTrainConfig
     from m3t.tokenizers.train import train_tokenizer
 
     torch.set_num_threads(1)
-    rng = np.random.default_rng(0)
-    seqs = [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(5)]
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=2, warmup_epochs=1, batch_size=2, window=8,
-                               windows_per_clip=1, device="cpu")
+    seqs = tiny_face_clips(5)
+    cfg = tiny_train_cfg(tmp_path, 2, 2)
     result = train_tokenizer("face", TINY_VAE, cfg, seqs, None,
                              "v", progress=False)
     steps = len(WindowSampler(seqs, 8, 2, 1))
@@ -1352,7 +1346,6 @@ def test_tokenizer_checkpoints_count_every_optimiser_step_of_every_epoch(tmp_pat
 def test_tokenizer_training_draws_its_windows_from_the_configured_seed_and_its_ranks_share(tmp_path, monkeypatch):
     import m3t.tokenizers.train as train_module
     from m3t.runtime import DistributedContext
-    from m3t.tokenizers.config import TokenizerTrainConfig
 
     samplers = []
 
@@ -1367,8 +1360,7 @@ def test_tokenizer_training_draws_its_windows_from_the_configured_seed_and_its_r
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     seqs = [rng.normal(size=(16 + 3 * i, 3)).astype(np.float32) for i in range(4)]
-    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), epochs=1, warmup_epochs=1, batch_size=2, window=8,
-                               windows_per_clip=2, seed=7, device="cuda")  # across ranks: the group's device
+    cfg = tiny_train_cfg(tmp_path, 1, 2, 2, seed=7, device="cuda")  # across ranks: the group's device
     result = train_module.train_tokenizer("face", TINY_VAE, cfg,
                                           seqs, None, "v", dist_ctx=DistributedContext(1, 2), progress=False)
     assert next(result.model.parameters()).device == torch.device("cpu")
