@@ -430,8 +430,8 @@ def _pa_row(xs, ys, var_s, var_t, i, m0, m1, work, out, single):
 @jit(nogil=True)
 def _point_job(pred, gt, kind, m0, m1, single, accumulate, path):
     """(T1, T2) cost matrix of one job (point lengths rooted in float32 with ``single``); with ``accumulate``
-    swept in place row by row into the DP table and backtracked into ``path`` (>= T1 + T2 - 1, 2). Returns the
-    table and the path length L (0 without)."""
+    swept in place into the DP table as its rows are written (:func:`_sweep_pending`) and backtracked into
+    ``path`` (>= T1 + T2 - 1, 2). Returns the table and the path length L (0 without)."""
     t1, t2 = pred.shape[0], gt.shape[0]
     table = np.empty((t1, t2))
     done = 0  # rows accumulated
