@@ -19,7 +19,7 @@ reprojection error (px) over the clips, and for the batched arm the spread of th
 clips (per-clip fits give each clip its own). Ratios new/old come from the same run (the machine is noisy).
 With ``--device cuda`` (when present) the batched arm also runs on the GPU.
 
-    python benchmarks/bench_fitting.py [--clips 12] [--threads 1] [--batch-frames 1024] [--budget-iterations 100]
+    python benchmarks/bench_fitting.py [--clips 12] [--threads 1] [--batch-frames 1024] [--budget-iterations 150]
                                       [--out benchmarks/results/fitting.json]
 """
 from __future__ import annotations
@@ -99,7 +99,7 @@ def main() -> None:
     parser.add_argument("--batch-frames", type=int, default=1024)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--iterations", type=int, default=0, help="the new solver's budget (0: params.yaml)")
-    parser.add_argument("--budget-iterations", type=int, default=100, help="budget of the new_budget arm (0: none)")
+    parser.add_argument("--budget-iterations", type=int, default=150, help="budget of the new_budget arm (0: none)")
     parser.add_argument("--out", default="benchmarks/results/fitting.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from m3t.body.protocol import BodyModel, Correspondence, as_tensors
+from m3t.body.protocol import BodyModel, Correspondence, KeypointIndex, as_tensors
 
 BODY_POINTS = ("neck", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
                "left_ear", "right_ear", "left_eye", "right_eye", "nose")
@@ -88,11 +88,30 @@ def metric_keypoints(body: BodyModel, landmark_set: str = "mediapipe_holistic") 
     return out
 
 
+def joined_keypoints(body: BodyModel, sets: dict[str, Correspondence]) -> tuple[KeypointIndex, dict[str, slice]]:
+    """One keypoint set for all ``sets`` (their points one after the other) and each set's slice of it."""
+    names, kinds, indices, slices, start = [], [], [], {}, 0
+    for name, c in sets.items():
+        names += [f"{name}:{n}" for n in c.names]
+        kinds.append(np.asarray(c.kind))
+        indices.append(np.asarray(c.index))
+        slices[name] = slice(start, start + len(c.names))
+        start += len(c.names)
+    joined = Correspondence(tuple(names), np.concatenate(kinds), np.concatenate(indices))
+    return body.keypoint_set(joined), slices
+
+
 def metric_points(body: BodyModel, params: dict[str, torch.Tensor], identity: torch.Tensor,
-                  sets: dict[str, Correspondence] | None = None) -> dict[str, torch.Tensor]:
-    """(T, K, 3) positions of every metric set for a parameter sequence (sparse forward)."""
-    sets = sets or metric_keypoints(body)
-    return {name: body.forward_keypoints(params, identity, body.keypoint_set(c)) for name, c in sets.items()}
+                  sets: dict[str, Correspondence] | None = None,
+                  joined: tuple[KeypointIndex, dict[str, slice]] | None = None) -> dict[str, torch.Tensor]:
+    """(T, K, 3) positions of every metric set for a parameter sequence: one sparse forward over all the sets'
+    points. ``joined``: :func:`joined_keypoints` of ``sets``, for callers that pose many sequences (building a
+    keypoint set gathers the model's buffers: ~2 ms per set)."""
+    if joined is None:
+        joined = joined_keypoints(body, sets or metric_keypoints(body))
+    keypoints, slices = joined
+    points = body.forward_keypoints(params, identity, keypoints)
+    return {name: points[:, sl] for name, sl in slices.items()}
 
 
 def metric_joints(body: BodyModel) -> Correspondence:

@@ -19,7 +19,7 @@ from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 class FittingConfig:
     """params.yaml ``fitting``: M3T App. C, Eq. A.3, L = w_kp L_kp + w_acc L_acc + w_reg L_reg."""
 
-    iterations: int = 150  # objective evaluations of the joint stage (lbfgs: at most; adam: steps)
+    iterations: int = 100  # objective evaluations of the joint stage (lbfgs: at most; adam: steps)
     camera_iterations: int = 20  # of the camera-only stage
     lr: float = 0.02
     w_kp: float = 1.0
@@ -30,7 +30,7 @@ class FittingConfig:
     camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
     device: str = "cpu"
     solver: Literal["lbfgs", "adam"] = "lbfgs"  # adam: the first solver (it used 200 + 100 steps)
-    lbfgs_round: int = 10  # iterations between convergence tests
+    lbfgs_round: int = 25  # iterations between convergence tests
     lbfgs_history: int = 100
     tolerance: float = 1e-3  # stop once a round improved the loss by less than this (relative)
 

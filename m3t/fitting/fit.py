@@ -86,7 +86,12 @@ def acceleration_loss(points: torch.Tensor) -> torch.Tensor:
 
 
 class _Pack:
-    """Several clips' frames along one batch axis, and the per-clip reductions of the objective's terms."""
+    """Several clips' frames along one batch axis, and the per-clip reductions of the objective's terms.
+
+    Per-clip sums are products with (C, B) weight matrices, so a term costs the same few operations whatever the
+    number of clips: ``frames`` (1 where frame b is in clip c) and ``triplets`` (the mean over clip c's
+    acceleration triplets, centred on frame b + 1, of those whose three frames lie in clip c).
+    """
 
     def __init__(self, lengths: list[int], device: torch.device):
         self.lengths = lengths
@@ -94,18 +99,15 @@ class _Pack:
                                             torch.as_tensor(lengths, device=device))  # (B,) clip of each frame
         starts = np.cumsum([0] + lengths[:-1])
         self.slices = [slice(int(a), int(a) + n) for a, n in zip(starts, lengths)]
-        # acceleration triplets (t - 1, t, t + 1) inside one clip
-        mid = torch.as_tensor([t for sl in self.slices for t in range(sl.start + 1, sl.stop - 1)], dtype=torch.long,
-                              device=device)
-        self.mid = mid
-        self.mid_clip = self.clip[mid]
-        self.triplets = torch.as_tensor([max(n - 2, 0) for n in lengths], dtype=torch.float32, device=device)
-        self.frames = torch.as_tensor(lengths, dtype=torch.float32, device=device)
-
-    def per_clip(self, values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-        """Sum (N, ...) rows into (C, ...) by clip ``index`` (N,)."""
-        out = values.new_zeros((len(self.lengths), *values.shape[1:]))
-        return out.index_add(0, index, values)
+        frames = np.zeros((len(lengths), sum(lengths)), dtype=np.float32)
+        triplets = np.zeros((len(lengths), max(sum(lengths) - 2, 0)), dtype=np.float32)
+        for c, sl in enumerate(self.slices):
+            frames[c, sl] = 1.0
+            if sl.stop - sl.start >= 3:  # triplets (t - 1, t, t + 1) inside the clip, row t - 1
+                triplets[c, sl.start: sl.stop - 2] = 1.0 / (sl.stop - sl.start - 2)
+        self.frames = torch.as_tensor(frames, device=device)  # (C, B)
+        self.frame_means = self.frames / self.frames.sum(1, keepdim=True).clamp(min=1)  # (C, B) mean over frames
+        self.triplets = torch.as_tensor(triplets, device=device)  # (C, B - 2)
 
 
 class _Terms:
@@ -115,33 +117,38 @@ class _Terms:
     def __init__(self, pack: _Pack, conf: torch.Tensor, parts: list[slice], valid: torch.Tensor):
         self.pack = pack
         self.conf = conf
-        self.parts = parts
-        self.valid = torch.nonzero(valid).flatten()
-        part_conf = torch.stack([conf[:, p].sum(1) for p in parts], 1)  # (B, parts)
-        norm = pack.per_clip(part_conf, pack.clip)  # (C, parts)
-        self.has_part = norm > 0
-        self.norm = torch.where(self.has_part, norm, torch.ones_like(norm))
-        self.parts_per_clip = self.has_part.sum(1).clamp(min=1)
+        membership = torch.zeros(conf.shape[1], len(parts), dtype=conf.dtype, device=conf.device)  # (K, parts)
+        for i, p in enumerate(parts):
+            membership[p, i] = 1.0
+        self.membership = membership
+        norm = pack.frames @ (conf @ membership)  # (C, parts) summed confidence
+        has_part = norm > 0
+        # each part's weighted squared error / its summed confidence, averaged over the parts the clip has
+        self.part_weights = has_part / torch.where(has_part, norm, torch.ones_like(norm)) \
+            / has_part.sum(1, keepdim=True).clamp(min=1)
+        # mean over the valid points of a squared acceleration in cm (points are in metres)
+        valid = valid.to(conf.dtype)
+        self.point_weights = valid * 100.0 ** 2 / valid.sum().clamp(min=1)  # (K,)
+        self._stream_weights: dict[tuple, torch.Tensor] = {}
 
     def reprojection(self, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         sq = ((uv - target) ** 2).sum(-1) * self.conf  # (B, K)
-        part_sq = torch.stack([sq[:, p].sum(1) for p in self.parts], 1)  # (B, parts)
-        per_part = self.pack.per_clip(part_sq, self.pack.clip) / self.norm
-        return (per_part * self.has_part).sum(1) / self.parts_per_clip
+        return ((self.pack.frames @ (sq @ self.membership)) * self.part_weights).sum(1)
 
     def acceleration(self, points: torch.Tensor) -> torch.Tensor:
-        pack = self.pack
-        if pack.mid.numel() == 0:
-            return points.new_zeros(len(pack.lengths))
-        p = points[:, self.valid]
-        acc = (p[pack.mid + 1] - 2 * p[pack.mid] + p[pack.mid - 1]) * 100.0
-        per_frame = (acc ** 2).sum(-1).mean(-1)  # (triplets,)
-        return pack.per_clip(per_frame, pack.mid_clip) / pack.triplets.clamp(min=1)
+        if self.pack.triplets.shape[1] == 0:
+            return points.new_zeros(len(self.pack.lengths))
+        acc = points[2:] - 2 * points[1:-1] + points[:-2]  # (B - 2, K, 3); rows across clips weigh 0
+        return self.pack.triplets @ ((acc ** 2).sum(-1) @ self.point_weights)
 
     def regulariser(self, params: dict[str, torch.Tensor], init: dict[str, torch.Tensor]) -> torch.Tensor:
-        pack = self.pack
-        per_stream = [pack.per_clip(((params[k] - init[k]) ** 2).mean(1), pack.clip) / pack.frames for k in params]
-        return torch.stack(per_stream, 1).mean(1)
+        dims = tuple(params[k].shape[1] for k in params)
+        weights = self._stream_weights.get(dims)
+        if weights is None:  # the mean over streams of each stream's mean over its dimensions
+            weights = torch.cat([torch.full((d,), 1.0 / (d * len(dims))) for d in dims]).to(self.conf)
+            self._stream_weights[dims] = weights
+        diff = torch.cat([params[k] - init[k] for k in params], 1)  # (B, D)
+        return self.pack.frame_means @ ((diff ** 2) @ weights)
 
 
 def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage: str, lr: float,

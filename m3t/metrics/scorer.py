@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from m3t.body.metric_sets import metric_keypoints, metric_points
+from m3t.body.metric_sets import joined_keypoints, metric_keypoints, metric_points
 from m3t.body.protocol import BodyModel, as_tensors
 from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs, summarise
 from m3t.metrics.soke import soke_keypoints, zero_soke_joints
@@ -90,6 +90,7 @@ class MotionScorer:
     def __init__(self, body: BodyModel, config: MotionMetricsConfig = MotionMetricsConfig()):
         self.body, self.config = body, config
         self.sets = soke_keypoints(body) if config.mode == "soke_exact" else metric_keypoints(body)
+        self._joined = joined_keypoints(body, self.sets)  # built once: every sequence is posed in one forward
         self._references: dict[str, dict[str, np.ndarray]] = {}
 
     @torch.no_grad()
@@ -100,7 +101,7 @@ class MotionScorer:
         if self.config.mode == "soke_exact":
             tensors = zero_soke_joints(self.body.layout, tensors)
         return {k: v.numpy().astype(np.float64)
-                for k, v in metric_points(self.body, tensors, ident, self.sets).items()}
+                for k, v in metric_points(self.body, tensors, ident, self.sets, self._joined).items()}
 
     def reference(self, clip_id: str, params: ParamSequence, identity: np.ndarray) -> None:
         """Pose and store the reference of ``clip_id`` (replacing one stored before under that id)."""

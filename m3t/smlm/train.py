@@ -134,7 +134,9 @@ def train_smlm(
     per_epoch = steps_per_epoch(len(train), cfg.batch_size, dist_ctx.world_size)
     if per_epoch == 0:
         raise ValueError(f"{len(train)} examples make no full batch for {dist_ctx.world_size} ranks; lower batch_size")
-    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    # fused: one pass over each parameter instead of ~10 elementwise kernels (the unfused step took a fifth of a
+    # CPU training step); the same AdamW update, equal up to float rounding
+    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     scheduler = warmup_cosine(optim, cfg.epochs, per_epoch, cfg.warmup_steps, "steps", cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
     tail = EpochTail(
