@@ -93,7 +93,7 @@ def test_one_identity_per_batch_and_a_deterministic_lbfgs(body, clips):
 
 def test_lbfgs_stops_on_its_convergence_test(body, clips):
     track = clips[0][1]
-    loose = fit_track(track, body, FittingConfig(iterations=200, camera_iterations=10, tolerance=0.5))
+    loose = fit_track(track, body, FittingConfig(iterations=200, camera_iterations=10, tolerance=0.5, lbfgs_round=10))
     assert 10 <= len(loose.loss_curve) < 60  # the first rounds already pass a 50 % test
     with pytest.raises(ValueError, match="fitting.solver"):
         fit_track(track, body, FittingConfig(solver="sgd", iterations=2))

@@ -91,6 +91,7 @@ class AnnyKeypoints(KeypointIndex):
     bones: torch.Tensor  # (J'',) long: the bones these points hang on and their ancestors, root first
     chain: tuple  # Anny's kinematic chain over ``bones``
     streams: dict  # rotation stream -> (its bones' columns in the stream, their positions in ``bones``)
+    rot_order: torch.Tensor  # (J'',) long: each bone's row in [base rotations of ``bones``; streamed rotations]
     joint_pos: torch.Tensor  # (K,) long: joint points' positions in ``bones`` (0 for vertex points)
 
 
@@ -240,6 +241,10 @@ class AnnyBody(torch.nn.Module):
             streams[name] = (torch.tensor(cols, dtype=torch.long), torch.tensor([pos[stream[c].item()] for c in cols],
                                                                                  dtype=torch.long))
         device = self.template.device
+        rot_order = list(range(len(bones)))  # a bone no stream drives keeps its base rotation
+        streamed = [int(a) for _, at in streams.values() for a in at]
+        for i, a in enumerate(streamed):
+            rot_order[a] = len(bones) + i
         joint_pos = torch.tensor([pos.get(int(j), 0) for j in keypoints.joint_index], dtype=torch.long, device=device)
         return AnnyKeypoints(keypoints.is_vertex, vidx, keypoints.joint_index, keypoints.valid,
                              rest=self.template[vidx], pheno_bs=self.pheno_bs[:, vidx].contiguous(),
@@ -247,7 +252,8 @@ class AnnyBody(torch.nn.Module):
                              skin_bones=torch.tensor([pos[b] for b in used] or [0], dtype=torch.long, device=device),
                              skin_weights=dense[:, used or [0]].contiguous(),
                              bones=torch.tensor(bones, dtype=torch.long, device=device),
-                             chain=(levels, indices.to(device)), streams=streams, joint_pos=joint_pos)
+                             chain=(levels, indices.to(device)), streams=streams,
+                             rot_order=torch.tensor(rot_order, dtype=torch.long, device=device), joint_pos=joint_pos)
 
     def _keypoint_bones(self, params: Params, rest_bones: torch.Tensor,
                         kp: AnnyKeypoints) -> tuple[torch.Tensor, torch.Tensor]:
@@ -264,10 +270,10 @@ class AnnyBody(torch.nn.Module):
         """
         batch = self.layout.check(params)
         levels, (local, order, inverse, parent) = kp.chain
-        rot = self.base_delta[kp.bones, :3, :3].expand(batch, -1, -1, -1).clone()  # D (B, J'', 3, 3)
-        for name, (cols, at) in kp.streams.items():
-            if len(cols):
-                rot[:, at.to(rot.device)] = sixd_to_matrix(params[name].reshape(batch, -1, 6)[:, cols.to(rot.device)])
+        base = self.base_delta[kp.bones, :3, :3].expand(batch, -1, -1, -1)
+        sixd = [params[name].reshape(batch, -1, 6)[:, cols.to(base.device)] for name, (cols, _) in kp.streams.items()]
+        streamed = sixd_to_matrix(torch.cat(sixd, 1))  # every stream's rotations in one call
+        rot = torch.cat([base, streamed], 1)[:, kp.rot_order]  # D (B, J'', 3, 3)
         r, h = rest_bones[..., :3, :3], rest_bones[..., :3, 3]
         reference = self._anny.reference_bone_orientations
         u = r if reference is None else reference[kp.bones].to(r.dtype).expand_as(r)
