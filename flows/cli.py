@@ -17,6 +17,7 @@
     m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
     m3t sgsa-study [--seeds 0 1 2]        the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
+    m3t claims [--min-seeds 3]            the papers' claims on the runs: paper vs ours, interval, verdict, run ids
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
 """
@@ -242,6 +243,19 @@ def _cmd_sgsa_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_claims(args: argparse.Namespace) -> int:
+    from m3t.claims import claims_markdown, write_claims
+    from m3t.config import load_params
+    from m3t.experiment import fetch_runs
+
+    params = load_params(args.params)
+    out = args.out or params.data.metrics_dir
+    rows = write_claims(fetch_runs(params.experiment), out, args.min_seeds)
+    print(claims_markdown(rows, args.min_seeds))
+    print(f"written: {out}/claims.json, {out}/claims.md")
+    return 0
+
+
 def _cmd_sgsa_study(args: argparse.Namespace) -> int:
     from m3t.body.factory import load_body_model
     from m3t.config import load_params
@@ -317,6 +331,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--out", default="metrics/sgsa-claims")
     p.set_defaults(func=_cmd_sgsa_study)
+    p = sub.add_parser("claims", help="judge the papers' claims on the MLflow runs: claims.json / claims.md")
+    p.add_argument("--min-seeds", type=int, default=3, help="fewer seeds per variant: inconclusive")
+    p.add_argument("--out", default=None, help="folder of claims.json / claims.md (default: data.metrics_dir)")
+    p.set_defaults(func=_cmd_claims)
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
     p.set_defaults(func=_cmd_sgsa_table)

@@ -19,7 +19,8 @@ PACKAGES = ("m3t", "flows", "dashboards")
 # Lowest first; a module may import from its own layer and the layers below it. The body model is the
 # foundation every other component computes with; shards (the data contract) sit below fitting, which writes
 # them; metrics and render depend only on the body model and shards, so trainers can select checkpoints by
-# them; models (smlm, slr, backtranslation and the coming sgsa) sit above tokenizers.
+# them; models (smlm, slr, backtranslation and the coming sgsa) sit above tokenizers; the claims read every
+# model's runs.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment")),
     ("body", ("m3t.body",)),
@@ -31,6 +32,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("fitting", ("m3t.fitting",)),
     ("tokenizers", ("m3t.tokenizers",)),
     ("models", ("m3t.smlm", "m3t.sgsa", "m3t.slr", "m3t.backtranslation")),
+    ("claims", ("m3t.claims",)),
     ("config", ("m3t.config",)),
     ("stages", ("m3t.stages",)),
     ("dashboards", ("dashboards",)),

@@ -183,7 +183,8 @@ def test_tables_pool_seeds_and_follow_the_paper_layouts():
 
 
 def test_claims_study_pairs_clips_over_seeds(trained, body, tmp_path):
-    from m3t.sgsa.study import bootstrap_interval, run_study
+    from m3t.metrics.stats import bootstrap_interval
+    from m3t.sgsa.study import run_study
 
     params, _ = trained
     summary = run_study(params.sgsa, params.sgsa_train, body, params.data, [0, 1], tmp_path, progress=False)

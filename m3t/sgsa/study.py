@@ -26,14 +26,15 @@ from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.pipeline import backtranslate
 from m3t.body.protocol import BodyModel
 from m3t.body.skeleton import graph_for
-from m3t.shards.folders import DataConfig
-from m3t.shards.io import data_version, read_split
-from m3t.shards.skeletons import SKELETON_STREAM, skeleton_clips
+from m3t.metrics.stats import INCONCLUSIVE, NOT_REPRODUCED, REPRODUCED, paired, verdict_better
 from m3t.sgsa.checkpoint import load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import make_samples, vocabularies
 from m3t.sgsa.evaluate import generate, score_production
 from m3t.sgsa.train import run_key, train_sgsa
+from m3t.shards.folders import DataConfig
+from m3t.shards.io import data_version, read_split
+from m3t.shards.skeletons import SKELETON_STREAM, skeleton_clips
 
 LOWER_IS_BETTER = {"dtw_jpe_mean_m": True, "dtw_jpe_mean_pathnorm_m": True, "rouge_l": False}
 
@@ -46,12 +47,6 @@ def variants(cfg: SGSAConfig) -> dict[str, SGSAConfig]:
     if cfg.temporal_adjacency:
         out[f"SGSA L={layers} N={cfg.temporal_adjacency}"] = dataclasses.replace(cfg, decoder_layers=layers)
     return out
-
-
-def bootstrap_interval(diff: np.ndarray, rng: np.random.Generator, draws: int = 2000) -> tuple[float, float]:
-    """95 % percentile interval of the mean of ``diff`` (C,) over clips resampled with replacement."""
-    means = diff[rng.integers(0, len(diff), size=(draws, len(diff)))].mean(1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
 def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel, data: DataConfig,
@@ -112,15 +107,12 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
     for counter in counters:
         for a, b, claim in comparisons:
             for metric, lower in LOWER_IS_BETTER.items():
-                pa, pb = per_clip[counter][a][metric], per_clip[counter][b][metric]
-                diff = (pb - pa).mean(0)  # (C,) seed-averaged paired difference
-                low, high = bootstrap_interval(diff, rng)
-                better_b = high < 0 if lower else low > 0
-                better_a = low > 0 if lower else high < 0
-                verdict = f"{b} better" if better_b else f"{a} better" if better_a else "no difference established"
+                pair = paired(per_clip[counter][a][metric], per_clip[counter][b][metric], rng)
+                verdict = {REPRODUCED: f"{b} better", NOT_REPRODUCED: f"{a} better",
+                           INCONCLUSIVE: "no difference established"}[verdict_better(pair.interval, lower)]
                 results.append({"claim": claim, "counter": counter, "a": a, "b": b, "metric": metric,
-                                "clips": int(diff.size), "mean_a": float(pa.mean()), "mean_b": float(pb.mean()),
-                                "difference": float(diff.mean()), "interval95": [low, high], "verdict": verdict})
+                                "clips": pair.clips, "mean_a": pair.mean_a, "mean_b": pair.mean_b,
+                                "difference": pair.difference, "interval95": list(pair.interval), "verdict": verdict})
     summary = {"split": split, "seeds": list(seeds), "variants": {n: dataclasses.asdict(c)
                                                                   for n, c in variants(model_cfg).items()},
                "per_seed": corpus, "comparisons": results}

@@ -27,6 +27,7 @@ import torch
 
 from m3t.atomic import atomic_path
 from m3t.corpora.clip import Clip
+from m3t.metrics.stats import bootstrap_interval
 
 SUBSETS = ("confusing", "normal")
 PAIR_CHANCE_TOP1 = 50.0
@@ -55,16 +56,9 @@ def topk_hits(logits: torch.Tensor, targets: torch.Tensor, k: int) -> np.ndarray
 def bootstrap_ci(hits: np.ndarray, resamples: int = 1000, confidence: float = 0.95,
                  seed: int = 0) -> tuple[float, float]:
     """Percentile bootstrap interval (in %) of the mean of ``hits`` (n,) over resampled clips; NaNs for n = 0."""
-    hits = np.asarray(hits, dtype=np.float64)
-    n = hits.size
-    if n == 0:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    means = np.concatenate([hits[rng.integers(0, n, size=(min(256, resamples - i), n))].mean(1)
-                            for i in range(0, resamples, 256)])  # chunks keep memory at 256 x n
-    alpha = (1.0 - confidence) / 2
-    low, high = np.quantile(means, [alpha, 1.0 - alpha])
-    return 100.0 * float(low), 100.0 * float(high)
+    low, high = bootstrap_interval(np.asarray(hits, dtype=np.float64), np.random.default_rng(seed), resamples,
+                                   confidence)
+    return 100.0 * low, 100.0 * high
 
 
 @dataclass(frozen=True)
@@ -145,7 +139,7 @@ def evaluations_from_flat(metrics: dict[str, float], reason: str = "") -> dict[s
     return out
 
 
-def _pair_hits(logits: torch.Tensor, targets: torch.Tensor, pairs: Sequence[str | None],
+def pair_hits(logits: torch.Tensor, targets: torch.Tensor, pairs: Sequence[str | None],
                pair_classes: dict[str, tuple[int, ...]]) -> np.ndarray:
     """(m,) bool over the clips whose pair has exactly two classes: the target beats its pair partner."""
     hits = []
@@ -184,7 +178,7 @@ def evaluate_logits(logits: torch.Tensor, targets: torch.Tensor, clips: Sequence
     confusing = np.flatnonzero(subsets == "confusing")
     pairs = [clip_pair(clips[i]) for i in confusing]
     if pair_classes and confusing.size and all(p is not None for p in pairs):
-        hits = _pair_hits(logits[confusing], targets[confusing], pairs, pair_classes)
+        hits = pair_hits(logits[confusing], targets[confusing], pairs, pair_classes)
         if hits.size:
             scores["confusing"] = dataclasses.replace(
                 scores["confusing"], pair_top1=Score.of(hits, PAIR_CHANCE_TOP1, resamples, confidence, seed),

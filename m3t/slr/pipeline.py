@@ -33,7 +33,15 @@ from m3t.shards.io import data_version, read_split
 from m3t.shards.schema import FittedClip
 from m3t.slr.checkpoint import LoadedSLR, ProbeMeta, load_slr
 from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
-from m3t.slr.evaluate import Evaluation, clip_pair, clip_subset, evaluate_logits, plot_confusion, topk_hits
+from m3t.slr.evaluate import (
+    Evaluation,
+    clip_pair,
+    clip_subset,
+    evaluate_logits,
+    pair_hits,
+    plot_confusion,
+    topk_hits,
+)
 from m3t.slr.features import Example, FrozenEncoders, build_examples, variant_streams
 from m3t.slr.model import ProbeDims
 from m3t.slr.table import table_csv, table_markdown
@@ -203,18 +211,26 @@ def load_probes(data: DataConfig, variants: Iterable[str], device: torch.device)
     return probes
 
 
-def prediction_rows(variant: str, examples: list[Example], logits: torch.Tensor, classes: ClassTable) -> list[dict]:
+def prediction_rows(variant: str, examples: list[Example], logits: torch.Tensor, classes: ClassTable,
+                    pairs: dict[str, tuple[int, ...]] | None = None) -> list[dict]:
+    """One row per clip; ``correct_pair`` (confusing clips of a two-class pair in ``pairs``, else empty): the
+    target's logit beats its pair partner's, the per-clip hit of ``pair_top1``."""
     targets = torch.tensor([e.target for e in examples], dtype=torch.long)
     top5 = logits.topk(min(5, logits.shape[1]), dim=-1).indices  # (n, 5)
     hit1, hit5 = topk_hits(logits, targets, 1), topk_hits(logits, targets, 5)
     rows = []
     for i, e in enumerate(examples):
         pred = int(top5[i, 0])
+        pair = clip_pair(e.clip)
+        members = (pairs or {}).get(pair) if pair is not None and clip_subset(e.clip) == "confusing" else None
+        pair_hit = ""
+        if members is not None and len(members) == 2 and e.target in members:
+            pair_hit = int(pair_hits(logits[i: i + 1], targets[i: i + 1], [pair], {pair: members})[0])
         rows.append({"variant": variant, "clip_id": e.clip.id, "label": e.clip.label, "gloss": classes.names[e.target],
                      "subset": clip_subset(e.clip), "pair": clip_pair(e.clip) or "",
                      "predicted_label": classes.labels[pred], "predicted_gloss": classes.names[pred],
                      "top5_labels": " ".join(str(classes.labels[int(j)]) for j in top5[i]),
-                     "correct_top1": int(hit1[i]), "correct_top5": int(hit5[i]),
+                     "correct_top1": int(hit1[i]), "correct_top5": int(hit5[i]), "correct_pair": pair_hit,
                      "frames": e.window.frames, "kept_start": e.window.start, "kept_end": e.window.end})
     return rows
 
@@ -260,7 +276,7 @@ def run_evaluate_slr(eval_cfg: SLREvaluateConfig, body: BodyModel | None, data: 
         logits = predict_logits(probe.model, examples, eval_cfg.batch_size)
         evaluations[variant] = evaluate_logits(logits, targets, [e.clip for e in examples], pairs, eval_cfg.bootstrap,
                                                eval_cfg.confidence, eval_cfg.seed, f"NMFs-CSL: {SUBSET_HINT}")
-        rows += prediction_rows(variant, examples, logits, classes)
+        rows += prediction_rows(variant, examples, logits, classes, pairs)
         plot_confusion(targets.numpy(), logits.argmax(-1).numpy(), classes.names, out / f"confusion_{variant}.png",
                        f"{corpus} {eval_cfg.split}, probe {variant}")
     trim = trim_summary(examples)

@@ -1,0 +1,142 @@
+"""The claims table (m3t.claims) on MLflow run records built here: the artifacts have the columns the evaluate
+stages write (``per_clip.csv`` of evaluate-smlm: clip_id, group, ..., dtw_jpe_body_m, ...; ``predictions.csv``
+of evaluate-slr: variant, clip_id, ..., subset, ..., correct_top1, correct_top5, correct_pair), one row per clip.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from m3t.claims import CLAIMS, claims_markdown, claims_table, write_claims
+from m3t.experiment import RunRecord
+
+CLIPS = [f"asl-syn-{i:04d}" for i in range(12)]
+
+
+def _write(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def smlm_run(tmp: Path, run_id: str, objective: bool, seed: int, body: np.ndarray, version: str = "v1",
+             start: int = 0) -> RunRecord:
+    folder = tmp / run_id
+    _write(folder / "per_clip.csv", [{"clip_id": c, "group": "synthetic/ASL-SYN", "steps": 9, "stopped": 1.0,
+                                      "dtw_jpe_body_m": float(v), "dtw_jpe_hand_m": float(v) / 2}
+                                     for c, v in zip(CLIPS, body)])
+    _write(folder / "backtranslation.csv", [{"clip_id": c, "language": "ASL-SYN", "frames": 40, "reference": "i read",
+                                            "hypothesis": "i read", "bleu4": 0.0, "rouge_l": 30.0 + float(v)}
+                                           for c, v in zip(CLIPS[:4], body)])
+    return RunRecord(run_id, "evaluate-smlm", start, "FINISHED", {"smlm_train.seed": str(seed)}, {}, folder,
+                     {"translation_objective": str(objective), "seed": str(seed), "data_version": version})
+
+
+def smlm_runs(tmp: Path, seeds: int, gain: float, version: str = "v1") -> list[RunRecord]:
+    g = np.random.default_rng(0)
+    out = []
+    for s in range(seeds):
+        base = 3.0 + g.random(len(CLIPS))
+        out.append(smlm_run(tmp, f"po{s}{version}", False, s, base, version, start=10 * s))
+        out.append(smlm_run(tmp, f"pt{s}{version}", True, s, base - gain + 0.01 * g.standard_normal(len(CLIPS)),
+                            version, start=10 * s + 1))
+    return sorted(out, key=lambda r: -r.start_time)  # newest first, as fetch_runs gives them
+
+
+def only(key: str):
+    return tuple(c for c in CLAIMS if c.key == key)
+
+
+def test_three_seeds_with_a_clear_gain_reproduce_and_one_seed_is_inconclusive(tmp_path):
+    rows = claims_table(smlm_runs(tmp_path, 3, gain=0.5), claims=only("smlm-objective-dtw-body"))
+    row = rows[0]
+    assert row["verdict"] == "reproduced" and row["seeds"] == ["0", "1", "2"] and row["units"] == len(CLIPS)
+    assert row["value"] == pytest.approx(-0.5, abs=0.02) and row["interval95"][1] < 0
+    assert sorted(row["runs_a"]) == ["po0v1", "po1v1", "po2v1"] and sorted(row["runs_b"]) == ["pt0v1", "pt1v1", "pt2v1"]
+    worse = claims_table(smlm_runs(tmp_path / "w", 3, gain=-0.5), claims=only("smlm-objective-dtw-body"))[0]
+    assert worse["verdict"] == "not reproduced"
+    one = claims_table(smlm_runs(tmp_path / "one", 1, gain=0.5), claims=only("smlm-objective-dtw-body"))[0]
+    assert one["verdict"] == "inconclusive" and "1 seed(s) < 3" in one["note"]
+    assert claims_table(smlm_runs(tmp_path / "one", 1, gain=0.5), min_seeds=1,
+                        claims=only("smlm-objective-dtw-body"))[0]["verdict"] == "reproduced"
+
+
+def test_runs_on_other_shards_are_never_paired(tmp_path):
+    # the newest runs are on data v2 (production only missing there); v1 runs of both variants must not be used
+    old = smlm_runs(tmp_path, 3, gain=0.5, version="v1")
+    new = [dataclasses.replace(r, start_time=r.start_time + 1000)
+           for r in smlm_runs(tmp_path, 3, gain=0.5, version="v2") if r.tags["translation_objective"] == "True"]
+    records = sorted(old + new, key=lambda r: -r.start_time)
+    row = claims_table(records, claims=only("smlm-objective-dtw-body"))[0]
+    assert row["verdict"] == "not run" and "with and without the translation objective" in row["note"]
+    untagged = [dataclasses.replace(r, tags={k: v for k, v in r.tags.items() if k != "data_version"}) for r in old]
+    row = claims_table(untagged, claims=only("smlm-objective-dtw-body"))[0]
+    assert row["verdict"] == "not run" and "data_version" in row["note"]
+
+
+def test_ground_truth_ceiling_pairs_each_seed_with_the_one_ground_truth_run(tmp_path):
+    records = smlm_runs(tmp_path, 3, gain=0.5)
+    gt = tmp_path / "gt"
+    _write(gt / "per_clip.csv", [{"clip_id": c, "language": "ASL-SYN", "frames": 40, "reference": "i read",
+                                  "hypothesis": "i read", "bleu4": 0.0, "rouge_l": 80.0} for c in CLIPS[:4]])
+    records.append(RunRecord("gt", "evaluate-backtranslation", 0, "FINISHED", {}, {}, gt,
+                             {"source": "ground-truth", "split": "test", "data_version": "v1"}))
+    row = claims_table(records, claims=only("bt-ground-truth-ceiling"))[0]
+    assert row["verdict"] == "reproduced" and row["units"] == 4 and row["runs_b"] == ["gt"] * 3
+    assert row["mean_b"] == pytest.approx(80.0)
+
+
+def test_recognition_claims_read_pair_hits_and_the_chance_band(tmp_path):
+    def slr(seed: int, face_less_pair: list[int]) -> RunRecord:
+        folder = tmp_path / f"slr{seed}"
+        rows = []
+        for i, hit in enumerate(face_less_pair):
+            for variant, pair_hit in (("full", 1), ("no_face", hit)):
+                rows.append({"variant": variant, "clip_id": f"iso-c{i}", "label": i, "gloss": "X",
+                             "subset": "confusing",
+                             "pair": f"p{i // 2}", "predicted_label": i, "predicted_gloss": "X", "top5_labels": "",
+                             "correct_top1": pair_hit, "correct_top5": 1, "correct_pair": pair_hit, "frames": 40,
+                             "kept_start": 0, "kept_end": 40})
+        for i in range(6):
+            for variant in ("full", "no_face"):
+                rows.append({"variant": variant, "clip_id": f"iso-n{i}", "label": 20 + i, "gloss": "Y",
+                             "subset": "normal", "pair": "", "predicted_label": 20 + i, "predicted_gloss": "Y",
+                             "top5_labels": "", "correct_top1": 1, "correct_top5": 1, "correct_pair": "",
+                             "frames": 40, "kept_start": 0, "kept_end": 40})
+        _write(folder / "predictions.csv", rows)
+        return RunRecord(f"slr{seed}", "evaluate-slr", seed, "FINISHED",
+                         {"full.slr_train.seed": str(seed), "no_face.slr_train.seed": str(seed)}, {}, folder,
+                         {"data_version": "v1"})
+
+    half = [1, 0] * 100  # the face-less probe picks the right twin half the time: chance
+    records = [slr(s, half) for s in range(3)]
+    rows = {r["key"]: r for r in claims_table(records, claims=only("slr-face-confusing") + only("slr-face-chance")
+                                              + only("slr-face-normal"))}
+    assert rows["slr-face-chance"]["value"] == pytest.approx(50.0)
+    assert rows["slr-face-chance"]["verdict"] == "reproduced"  # 200 clips: the interval stays inside 50 +- 10
+    few = {r["key"]: r for r in claims_table([slr(s, [1, 0] * 10) for s in range(3)], claims=only("slr-face-chance"))}
+    assert few["slr-face-chance"]["verdict"] == "inconclusive"  # 20 clips: +-20 points, wider than the band
+    assert rows["slr-face-confusing"]["verdict"] == "reproduced"  # with face 100 %, without 50 %
+    assert rows["slr-face-normal"]["verdict"] == "reproduced" and rows["slr-face-normal"]["value"] == 0.0
+    always = [slr(s, [1] * 40) for s in range(3)]  # the face-less probe still separates every pair
+    rows = {r["key"]: r for r in claims_table(always, claims=only("slr-face-chance"))}
+    assert rows["slr-face-chance"]["verdict"] == "not reproduced"
+
+
+def test_write_claims_lists_every_claim_with_run_ids_or_what_to_run(tmp_path):
+    records = smlm_runs(tmp_path, 3, gain=0.5)
+    rows = write_claims(records, tmp_path / "out")
+    saved = json.loads((tmp_path / "out" / "claims.json").read_text())
+    assert [r["key"] for r in saved["claims"]] == [c.key for c in CLAIMS] == [r["key"] for r in rows]
+    assert saved["min_seeds"] == 3 and "SOKE" in saved["motion_definition"]
+    table = (tmp_path / "out" / "claims.md").read_text()
+    assert "po0v1"[:8] in table and "| reproduced |" in table
+    assert "not run: no train-tokenizers run: run `dvc repro train-tokenizers`" in table
+    assert table == claims_markdown(rows, 3)

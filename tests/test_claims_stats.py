@@ -1,0 +1,96 @@
+"""Intervals and verdicts of the claims (m3t.metrics.stats) on fixed inputs: a clear win, a clear loss, a
+straddle, for a lower-is-better and a higher-is-better metric; seeds paired per clip; missing scores."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from m3t.metrics.stats import (
+    INCONCLUSIVE,
+    NOT_REPRODUCED,
+    REPRODUCED,
+    bootstrap_interval,
+    paired,
+    verdict_better,
+    verdict_within,
+)
+
+# per-clip DTW-JPE of variant A, 3 seeds x 8 clips
+A = np.array([[3.0, 4.0, 5.0, 6.0, 3.5, 4.5, 5.5, 6.5],
+              [3.2, 3.9, 5.1, 6.2, 3.4, 4.4, 5.6, 6.4],
+              [2.9, 4.1, 4.9, 5.8, 3.6, 4.6, 5.4, 6.6]])
+
+
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
+
+
+def test_a_clear_win_a_clear_loss_and_a_straddle():
+    win = paired(A, A - 1.0, rng())  # B lower on every clip and seed
+    assert win.difference == pytest.approx(-1.0) and win.interval == pytest.approx((-1.0, -1.0))
+    assert verdict_better(win.interval, lower_is_better=True) == REPRODUCED
+    assert verdict_better(win.interval, lower_is_better=False) == NOT_REPRODUCED
+    loss = paired(A, A + 0.5, rng())
+    assert verdict_better(loss.interval, lower_is_better=True) == NOT_REPRODUCED
+    # half the clips better by 1, half worse by 1: the interval must straddle 0
+    mixed = A + np.array([-1.0, 1.0] * 4)
+    straddle = paired(A, mixed, rng())
+    low, high = straddle.interval
+    assert low < 0 < high and straddle.difference == pytest.approx(0.0)
+    assert verdict_better(straddle.interval, lower_is_better=True) == INCONCLUSIVE
+    assert verdict_better(straddle.interval, lower_is_better=False) == INCONCLUSIVE
+
+
+def test_seeds_are_averaged_per_clip_before_the_bootstrap_and_spread_is_reported():
+    b = A.copy()
+    b[0] -= 2.0  # one seed much better, the others equal: the clip averages move by 2/3
+    pair = paired(A, b, rng())
+    assert pair.seeds == 3 and pair.clips == 8
+    assert pair.difference == pytest.approx(-2.0 / 3.0)
+    assert pair.interval == pytest.approx((-2.0 / 3.0, -2.0 / 3.0))  # every clip moved alike
+    assert pair.std_a == pytest.approx(float(np.std(A.mean(1))))
+    assert pair.std_b > pair.std_a  # seed 0 of B is an outlier
+    assert pair.mean_a == pytest.approx(A.mean()) and pair.mean_b == pytest.approx(b.mean())
+
+
+def test_a_clip_a_seed_missed_is_averaged_over_the_other_seeds_and_unscored_clips_leave():
+    b = A - 1.0
+    b[1, 0] = np.nan  # seed 1 has no score for clip 0 on side B: that seed leaves clip 0 on both sides
+    b[:, 3] = np.nan  # no seed scored clip 3: it leaves everything
+    pair = paired(A, b, rng())
+    assert pair.clips == 7
+    assert pair.difference == pytest.approx(-1.0)
+    kept = np.delete(A, 3, axis=1)
+    kept_a = kept.copy()
+    kept_a[1, 0] = np.nan
+    assert pair.mean_a == pytest.approx(np.nanmean(kept_a))
+    with pytest.raises(ValueError, match="same seeds on the same clips"):
+        paired(A, A[:, :5], rng())
+
+
+def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_clips():
+    g = np.random.default_rng(1)
+    few, many = g.normal(1.0, 1.0, 10), g.normal(1.0, 1.0, 1000)
+    lo_few, hi_few = bootstrap_interval(few, rng())
+    lo_many, hi_many = bootstrap_interval(many, rng())
+    assert lo_few < few.mean() < hi_few and lo_many < many.mean() < hi_many
+    assert hi_many - lo_many < (hi_few - lo_few) / 4
+    assert bootstrap_interval(np.full(5, 2.0), rng()) == (2.0, 2.0)
+    assert all(math.isnan(v) for v in bootstrap_interval(np.array([]), rng()))
+    # a narrower confidence gives a narrower interval, and the same generator state gives the same interval
+    assert np.subtract(*bootstrap_interval(few, rng(), confidence=0.5)[::-1]) < hi_few - lo_few
+    assert bootstrap_interval(few, rng()) == (lo_few, hi_few)
+
+
+def test_within_a_band_outside_it_and_overlapping_its_edge():
+    chance = 50.0
+    assert verdict_within((45.0, 58.0), chance, 10.0) == REPRODUCED
+    assert verdict_within((65.0, 90.0), chance, 10.0) == NOT_REPRODUCED
+    assert verdict_within((10.0, 35.0), chance, 10.0) == NOT_REPRODUCED
+    assert verdict_within((55.0, 75.0), chance, 10.0) == INCONCLUSIVE
+    assert verdict_within((math.nan, math.nan), chance, 10.0) == INCONCLUSIVE
+    assert verdict_better((math.nan, 1.0), lower_is_better=True) == INCONCLUSIVE
+    with pytest.raises(ValueError, match="margin"):
+        verdict_within((0.0, 1.0), 0.0, -1.0)
