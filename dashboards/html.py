@@ -9,8 +9,8 @@ import html
 from collections.abc import Sequence
 
 PAGES = (("index.html", "Overview"), ("tables.html", "Paper tables"), ("curves.html", "Training curves"),
-         ("codebooks.html", "Codebooks"), ("quality.html", "Data quality"), ("videos.html", "Videos"),
-         ("runs.html", "Runs"))
+         ("claims.html", "Claims"), ("codebooks.html", "Codebooks"), ("quality.html", "Data quality"),
+         ("videos.html", "Videos"), ("runs.html", "Runs"))
 
 STYLE = """
 body{font-family:system-ui,sans-serif;margin:0;color:#222}

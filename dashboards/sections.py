@@ -15,6 +15,7 @@ from pathlib import Path
 from dashboards import html as h
 from dashboards.paper import M3T, SGSA, PaperTable
 from m3t.backtranslation.table import backtranslation_table
+from m3t.claims import claims_table
 from m3t.config import Params
 from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
 from m3t.sgsa.table import adjacency_table, cross_table, layers_table
@@ -119,6 +120,30 @@ def curves(runs: list[RunRecord], experiment: ExperimentConfig, root: str | Path
 
 
 # ------------------------------------------------------------------------------------------------ codebooks
+def claims(runs: list[RunRecord]) -> str:
+    """Every claim of :data:`m3t.claims.CLAIMS` judged on the runs (what ``m3t claims`` writes)."""
+    rows = claims_table(runs)
+    note = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % bootstrap interval over "
+            "test clips of the seed-averaged values (over seeds for codebook statistics); runs of one data version "
+            "only. Verdicts need >= 3 seeds; a claim with no runs says which command makes them. "
+            "<code>m3t claims</code> writes the same table to claims.json / claims.md.")
+    body = []
+    for r in rows:
+        if r["verdict"] == "not run":
+            body.append([r["claim"], r["source"], r["paper"], r["metric"], "-", "-", f"not run: {r['note']}", 0, "-"])
+            continue
+        low, high = r["interval95"]
+        body.append([r["claim"], r["source"], r["paper"], r["metric"],
+                     f"{r['a']} {r['mean_a']:.3g} +- {r['std_a']:.2g} -> "
+                     f"{r['b']} {r['mean_b']:.3g} +- {r['std_b']:.2g}",
+                     f"{r['compared']} {r['value']:.3g} [{low:.3g}, {high:.3g}]",
+                     r["verdict"] + (f" ({r['note']})" if r["note"] else ""), len(r["seeds"]),
+                     ", ".join(sorted({i[:8] for i in r["runs_a"] + r["runs_b"]}))])
+    header = ["claim", "source", "paper", "metric", "ours: A -> B", "compared [95 % interval]", "verdict", "seeds",
+              "runs"]
+    return f"<p class=note>{note}</p>" + h.table(header, body, "claims")
+
+
 def _token_counts(record: RunRecord) -> dict[str, dict]:
     if record.artifact_dir is None:
         return {}

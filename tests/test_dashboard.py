@@ -8,6 +8,7 @@ from pathlib import Path
 
 from dashboards.build import build_dashboard
 from dashboards.html import PAGES, markdown
+from m3t.claims import CLAIMS
 from m3t.config import load_params
 from m3t.experiment import fetch_runs
 
@@ -23,6 +24,7 @@ def test_an_empty_store_shows_what_to_run(tmp_path):
     assert "No runs in the MLflow store yet" in pages["index.html"] and "dvc repro" in pages["index.html"]
     assert "no finished evaluate-smlm runs yet" in pages["tables.html"]
     assert "Not fitted yet" in pages["quality.html"] and "No rendered video yet" in pages["videos.html"]
+    assert pages["claims.html"].count("not run: no ") == len(CLAIMS)  # each claim says which stage to run
     assert all("Traceback" not in text for text in pages.values())
     assert (index.parent / "assets" / "plotly.min.js").stat().st_size > 1_000_000  # from the wheel, no CDN
     assert not list(tmp_path.glob("site.*"))  # built aside and renamed: no leftover folder
