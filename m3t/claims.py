@@ -209,10 +209,13 @@ def sgsa_adjacency(file: str, column: str) -> Callable[[list[RunRecord]], Sample
 
 
 def tokenizer_runs(metric: str, a: tuple[str, str], b: tuple[str, str]) -> Callable[[list[RunRecord]], Sample]:
-    """A train-tokenizers run metric of two (quantizer, batch size) settings, paired by seed; one value per run."""
+    """A train-tokenizers run metric of two (quantizer, batch size) settings at one width (the newest run's),
+    paired by seed; one value per run."""
 
     def collect(records: list[RunRecord]) -> Sample:
-        runs = newest_finished(_stage(records, "train-tokenizers"),
+        tokenizers = _stage(records, "train-tokenizers")
+        width = tokenizers[0].tags.get("width") if tokenizers else None  # the newest run's width, for both sides
+        runs = newest_finished([r for r in tokenizers if r.tags.get("width") == width],
                                lambda r: (r.tags.get("quantizer"), r.tags.get("batch_size"), _seed(r)))
         seeds = sorted({s for (q, bs, s) in runs if (q, bs) == a} & {s for (q, bs, s) in runs if (q, bs) == b})
         seeds = [s for s in seeds if metric in runs[(*a, s)].metrics and metric in runs[(*b, s)].metrics]

@@ -140,3 +140,20 @@ def test_write_claims_lists_every_claim_with_run_ids_or_what_to_run(tmp_path):
     assert "po0v1"[:8] in table and "| reproduced |" in table
     assert "not run: no train-tokenizers run: run `dvc repro train-tokenizers`" in table
     assert table == claims_markdown(rows, 3)
+
+
+def test_codebook_claims_pair_runs_by_seed_at_one_width(tmp_path):
+    def run(run_id: str, quantizer: str, batch: int, seed: int, use: float, width: int = 128, start: int = 0):
+        return RunRecord(run_id, "train-tokenizers", start, "FINISHED", {}, {"body/utilisation_pct": use}, tmp_path,
+                         {"quantizer": quantizer, "batch_size": str(batch), "seed": str(seed), "width": str(width),
+                          "data_version": "v1"})
+
+    records = [run(f"f{s}", "fsq", 16, s, 60.0 + s, start=10 + s) for s in range(3)]
+    records += [run(f"v{s}", "vq", 16, s, 40.0 + 2 * s, start=s) for s in range(3)]
+    records += [run("wide", "vq", 16, 0, 99.0, width=1024, start=-1)]  # another width: never paired
+    records.sort(key=lambda r: -r.start_time)
+    row = claims_table(records, claims=only("tokenizer-utilisation-body"))[0]
+    assert row["unit"] == "seed" and row["units"] == 3 and row["seeds"] == ["0", "1", "2"]
+    assert row["mean_a"] == pytest.approx(42.0) and row["mean_b"] == pytest.approx(61.0)
+    assert row["verdict"] == "reproduced" and "wide" not in row["runs_a"]
+    assert row["std_a"] == pytest.approx(float(np.std([40.0, 42.0, 44.0])))
