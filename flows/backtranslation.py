@@ -14,6 +14,8 @@ from prefect.cache_policies import NO_CACHE
 
 from m3t.backtranslation import pipeline
 from m3t.config import Params, load_params
+from m3t.experiment import extra_tags
+from m3t.stages import shards_version
 
 
 @task(cache_policy=NO_CACHE)
@@ -31,8 +33,9 @@ def evaluate_backtranslation(params: Params) -> dict:
 def backtranslation_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
     """Train the back-translation judges, then score the ground-truth motion of the test split with them."""
     params = load_params(params_path, preset=preset)
-    report = train_backtranslation(params)
-    summary = evaluate_backtranslation(params)
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        report = train_backtranslation(params)
+        summary = evaluate_backtranslation(params)
     headline = {k: round(v, 2) for k, v in summary.items() if k in ("slt_bleu4", "slt_rouge_l")}
     get_run_logger().info("back-translation upper bound (SL-T definition): %s", headline)
     return {"train": report, "evaluation": summary}

@@ -20,8 +20,8 @@ import argparse
 from prefect import serve
 
 from flows.backtranslation import backtranslation_flow
-from flows.reevaluate import evaluate_flow
 from flows.fit_corpus import fit_corpus
+from flows.reevaluate import evaluate_flow
 from flows.sgsa import sgsa_flow
 from flows.slr import slr_flow
 from flows.smlm import evaluate_smlm_flow, smlm_flow

@@ -22,6 +22,7 @@ from m3t.experiment import extra_tags
 from m3t.sgsa import pipeline as sgsa
 from m3t.slr import pipeline as slr
 from m3t.smlm import pipeline as smlm
+from m3t.stages import shards_version
 from m3t.tokenizers import pipeline as tokenizers
 
 SCHEDULED = {"scheduled": "true"}
@@ -76,7 +77,8 @@ def evaluate_flow(params_path: str = "params.yaml", preset: str = "default", das
             outcome[name] = f"skipped: no checkpoint (run the {stage} stage)"
             logger.info("%s: %s", name, outcome[name])
             continue
-        state = evaluate_family.with_options(name=f"evaluate-{name}")(name, evaluation, return_state=True)
+        with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+            state = evaluate_family.with_options(name=f"evaluate-{name}")(name, evaluation, return_state=True)
         if state.is_completed():
             outcome[name] = "evaluated"
             logger.info("%s: evaluated", name)

@@ -16,7 +16,9 @@ from m3t.backtranslation.pipeline import train_and_log as train_judge
 from m3t.body.factory import load_body_model
 from m3t.body.skeleton import graph_for
 from m3t.config import Params, load_params
+from m3t.experiment import extra_tags
 from m3t.sgsa import pipeline
+from m3t.stages import shards_version
 
 
 @task(cache_policy=NO_CACHE)
@@ -42,9 +44,10 @@ def evaluate_sgsa(params: Params) -> dict:
 def sgsa_flow(params_path: str = "params.yaml", preset: str = "default", train_judge: bool = True) -> dict:
     """Train the skeleton judge (unless ``train_judge`` is false), PT and SGSA, then score them with the SMLM."""
     params = load_params(params_path, preset=preset)
-    judge = train_skeleton_judge(params) if train_judge else {}
-    report = train_sgsa(params)
-    summary = evaluate_sgsa(params)
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        judge = train_skeleton_judge(params) if train_judge else {}
+        report = train_sgsa(params)
+        summary = evaluate_sgsa(params)
     headline = {k: round(v, 4) for k, v in summary.items() if k.endswith("/test/dtw_jpe_mean_m")}
     get_run_logger().info("sgsa %s: %s", params.sgsa.variant, headline)
     return {"judge": judge, "train": report, "evaluation": summary}

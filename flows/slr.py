@@ -12,7 +12,9 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from m3t.config import Params, load_params
+from m3t.experiment import extra_tags
 from m3t.slr import pipeline
+from m3t.stages import shards_version
 
 
 @task(cache_policy=NO_CACHE)
@@ -31,8 +33,9 @@ def evaluate_slr(params: Params) -> dict:
 def slr_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
     """Train the recognition probes on ``slr.corpus``, then score them on ``slr_evaluate.split``."""
     params = load_params(params_path, preset=preset)
-    report = train_slr(params)
-    summary = evaluate_slr(params)
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        report = train_slr(params)
+        summary = evaluate_slr(params)
     headline = {k: round(v, 1) for k, v in summary.items() if k.endswith(("/top1",)) and "overall" in k}
     get_run_logger().info("slr %s: %s", params.slr.corpus, headline)
     return {"train": report, "evaluation": summary}

@@ -13,7 +13,9 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from m3t.config import Params, load_params
+from m3t.experiment import extra_tags
 from m3t.smlm import pipeline
+from m3t.stages import shards_version
 
 
 @task(cache_policy=NO_CACHE)
@@ -42,19 +44,21 @@ def _headline(summary: dict) -> str:
 def evaluate_smlm_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
     """Generate with the current checkpoint and score it (logged to MLflow)."""
     params = load_params(params_path, preset=preset)
-    generated = generate(params)
-    summary = evaluate(params)
-    get_run_logger().info("generated %s; %s", generated, _headline(summary))
-    return summary
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        generated = generate(params)
+        summary = evaluate(params)
+        get_run_logger().info("generated %s; %s", generated, _headline(summary))
+        return summary
 
 
 @flow(name="smlm", log_prints=True)
 def smlm_flow(params_path: str = "params.yaml", preset: str = "default") -> dict:
     """Train the SMLM on the token shards, then generate and evaluate on the configured split."""
     params = load_params(params_path, preset=preset)
-    report = train_smlm(params)
-    get_run_logger().info("trained: best epoch %s", report.get("best_epoch"))
-    generated = generate(params)
-    summary = evaluate(params)
-    get_run_logger().info("generated %s; %s", generated, _headline(summary))
-    return {"train": report, "evaluation": summary}
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        report = train_smlm(params)
+        get_run_logger().info("trained: best epoch %s", report.get("best_epoch"))
+        generated = generate(params)
+        summary = evaluate(params)
+        get_run_logger().info("generated %s; %s", generated, _headline(summary))
+        return {"train": report, "evaluation": summary}

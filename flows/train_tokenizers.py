@@ -9,7 +9,9 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from m3t.config import Params, load_params
+from m3t.experiment import extra_tags
 from m3t.shards.folders import DataConfig
+from m3t.stages import shards_version
 from m3t.tokenizers.pipeline import train_and_log
 from m3t.tokenizers.tokenize import run_tokenize
 
@@ -30,7 +32,8 @@ def train_tokenizers_flow(params_path: str = "params.yaml", preset: str = "defau
     """Train the body / hand / face tokenizers, then write token shards for every split."""
     logger = get_run_logger()
     params = load_params(params_path, preset=preset)
-    report = train_tokenizers(params)
+    with extra_tags(shards_version(params)):  # runs tagged with the shards they read
+        report = train_tokenizers(params)
     for group, values in report.items():
         logger.info("%s: PA-VPE %.2f mm, utilisation %.1f%%", group, values.get("test_pa_vpe_mm", float("nan")),
                     values["utilisation_pct"])

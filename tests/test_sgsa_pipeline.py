@@ -211,6 +211,7 @@ def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
     from flows.cli import main as cli
     from flows.sgsa import sgsa_flow
     from m3t.experiment import fetch_runs, to_dict
+    from m3t.stages import shards_version
 
     params, _ = trained
     params = dataclasses.replace(params, experiment=dataclasses.replace(
@@ -224,6 +225,8 @@ def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
     runs = fetch_runs(params.experiment, stage="evaluate-sgsa")
     assert len(runs) == 1 and runs[0].tags["seed"] == str(params.sgsa_train.seed)
     assert runs[0].params["sgsa.decoder_layers"] == str(params.sgsa.decoder_layers)
+    # the flow tags its runs with the shards they read, as the DVC stages do (m3t claims pairs only those)
+    assert runs[0].tags["data_version"] == shards_version(params)["data_version"]
     assert {r.stage for r in fetch_runs(params.experiment)} >= {"train-backtranslation-skeleton", "train-sgsa",
                                                                   "evaluate-sgsa"}
     assert cli(["--params", str(params_file), "sgsa-table", "--table", "3"]) == 0
