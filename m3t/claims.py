@@ -189,11 +189,8 @@ def sgsa_adjacency(file: str, column: str) -> Callable[[list[RunRecord]], Sample
         runs = [r for r in _stage(records, "evaluate-sgsa") if r.params.get("sgsa.decoder_layers", "0") != "0"]
         key = newest_finished(runs, lambda r: (r.params.get("sgsa.decoder_layers"),
                                                r.params.get("sgsa.temporal_adjacency"), _seed(r)))
-        found = None
-        for (layers, adjacency, seed) in key:
-            if adjacency not in ("0", None) and any(k == (layers, "0", seed) for k in key):
-                found = (layers, adjacency)
-                break
+        found = next(((layers, adjacency) for layers, adjacency, seed in key
+                      if adjacency not in ("0", None) and (layers, "0", seed) in key), None)
         if found is None:
             raise MissingRuns("needs evaluate-sgsa runs at N = inf and a finite N with the same layers and seed: "
                               "`m3t sgsa-sweep 2`")
@@ -303,9 +300,7 @@ CLAIMS: tuple[Claim, ...] = (
 # ------------------------------------------------------------------ the table
 def judge(claim: Claim, sample: Sample, min_seeds: int, rng: np.random.Generator) -> dict:
     """One table row: means, the seeds' spread, the interval and the verdict of ``claim`` on ``sample``."""
-    a, b = sample.a, sample.b
-    if sample.unit == "seed":  # one value per run: the seeds are what the bootstrap resamples
-        a, b = a.reshape(1, -1), b.reshape(1, -1)
+    a, b = sample.a, sample.b  # unit "seed": (1, R), so the seeds are what the bootstrap resamples
     pair = paired(a, b, rng)
     if claim.within is not None and claim.of == "b":
         own = paired(np.zeros_like(b), b, rng)  # B's own mean and interval

@@ -221,11 +221,9 @@ def prediction_rows(variant: str, examples: list[Example], logits: torch.Tensor,
     rows = []
     for i, e in enumerate(examples):
         pred = int(top5[i, 0])
-        pair = clip_pair(e.clip)
-        members = (pairs or {}).get(pair) if pair is not None and clip_subset(e.clip) == "confusing" else None
-        pair_hit = ""
-        if members is not None and len(members) == 2 and e.target in members:
-            pair_hit = int(pair_hits(logits[i: i + 1], targets[i: i + 1], [pair], {pair: members})[0])
+        hit = (pair_hits(logits[i: i + 1], targets[i: i + 1], [clip_pair(e.clip)], pairs or {})
+               if clip_subset(e.clip) == "confusing" else [])  # empty unless a two-class pair holds the target
+        pair_hit = int(hit[0]) if len(hit) else ""
         rows.append({"variant": variant, "clip_id": e.clip.id, "label": e.clip.label, "gloss": classes.names[e.target],
                      "subset": clip_subset(e.clip), "pair": clip_pair(e.clip) or "",
                      "predicted_label": classes.labels[pred], "predicted_gloss": classes.names[pred],
