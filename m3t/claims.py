@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import math
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -330,10 +331,12 @@ def judge(claim: Claim, sample: Sample, min_seeds: int, rng: np.random.Generator
 
 def claims_table(records: list[RunRecord], min_seeds: int = 3, claims: tuple[Claim, ...] = CLAIMS,
                  seed: int = 0) -> list[dict]:
-    """Every claim judged on ``records`` (MLflow runs, newest first); a claim without runs says what to run."""
-    rng = np.random.default_rng(seed)
+    """Every claim judged on ``records`` (MLflow runs, newest first); a claim without runs says what to run.
+    Each claim bootstraps with its own generator, seeded from ``seed`` and its key: its interval does not depend
+    on which other claims are judged, nor in which order."""
     rows = []
     for claim in claims:
+        rng = np.random.default_rng([seed, zlib.crc32(claim.key.encode())])
         try:
             rows.append(judge(claim, claim.collect(records), min_seeds, rng))
         except MissingRuns as missing:

@@ -30,7 +30,7 @@ from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 
 PRESET_DIR = Path(__file__).parent / "presets"
-PRESETS = ("default", "tiny", "paper")
+PRESETS = ("default", "tiny", "paper", "study")
 
 
 class ConfigError(ValueError):

@@ -157,3 +157,17 @@ def test_codebook_claims_pair_runs_by_seed_at_one_width(tmp_path):
     assert row["mean_a"] == pytest.approx(42.0) and row["mean_b"] == pytest.approx(61.0)
     assert row["verdict"] == "reproduced" and "wide" not in row["runs_a"]
     assert row["std_a"] == pytest.approx(float(np.std([40.0, 42.0, 44.0])))
+
+
+def test_a_claims_interval_does_not_depend_on_the_other_claims_judged(tmp_path):
+    # one generator per claim, seeded from its key: judged alone, after another claim or in reverse order, the
+    # interval is the same (a shared generator gave each claim the draws its predecessors left)
+    records = smlm_runs(tmp_path, 3, gain=0.1)
+    keys = ("smlm-objective-dtw-body", "smlm-objective-dtw-hand")
+    alone = claims_table(records, claims=only(keys[1]))[0]
+    both = {r["key"]: r for r in claims_table(records, claims=only(keys[0]) + only(keys[1]))}
+    reverse = {r["key"]: r for r in claims_table(records, claims=only(keys[1]) + only(keys[0]))}
+    assert alone["interval95"] == both[keys[1]]["interval95"] == reverse[keys[1]]["interval95"]
+    assert both[keys[0]]["interval95"] == reverse[keys[0]]["interval95"]
+    other_seed = claims_table(records, claims=only(keys[1]), seed=1)[0]
+    assert other_seed["interval95"] != alone["interval95"]  # the draws do come from the seed

@@ -101,7 +101,8 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
     """Train every language's model; ``on_epoch(language, record, epoch)`` sees each epoch's record. Returns
     the numbers written to ``metrics.json`` (``<language>/<name>``). With ``skeleton`` the models read skeletons
     (``backtranslation.input_layout`` is ignored) and go to ``data.skeleton_judge_dir``."""
-    train, dev = read_split(data.shards_dirs, "train"), read_split(data.shards_dirs, "dev")
+    train = data.for_production(read_split(data.shards_dirs, "train"))
+    dev = data.for_production(read_split(data.shards_dirs, "dev"))
     if not train:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no clip")
     if skeleton is not None:
@@ -114,7 +115,8 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
     if not languages:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no sentence clip (only isolated signs); "
                          "back-translation needs sentences")
-    version = data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")])
+    version = data.production_version(
+        data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")]))
     train_by, dev_by = _by_language(train), _by_language(dev)
     skipped = [{"clip_id": c.clip.id, "split": c.clip.split, "language": c.clip.language,
                 "reason": skip_reason(c.clip, c.num_frames) or "language not in backtranslation.languages"}
@@ -252,7 +254,7 @@ def run_evaluate_backtranslation(model_cfg: BackTranslationConfig, data: DataCon
     """The ground-truth upper bound (M3T Tab. 2, "GT 3DMM"): the fitted motion of ``split`` back-translated.
     Isolated signs, clips with empty text and languages outside ``backtranslation.languages`` are skipped with
     their reason; every other clip is scored."""
-    clips = read_split(data.shards_dirs, split)
+    clips = data.for_production(read_split(data.shards_dirs, split))
     chosen, skipped = {}, []
     for c in clips:
         reason = skip_reason(c.clip, c.num_frames)

@@ -1,7 +1,16 @@
-"""Config of the embedded synthetic corpus generator (params.yaml ``synthetic_corpus``)."""
+"""Config of the embedded synthetic corpus generator (params.yaml ``synthetic_corpus``).
+
+The defaults give the small embedded corpus every README number was measured on. The ``study`` preset turns on
+the design options that make held-out tests honest (:mod:`m3t.corpora.synthetic` says how each is generated):
+``sentence_split: held_out`` (no test sentence's concepts in train), ``held_out_signers``, a larger isolated test
+share (``isolated_splits``), ``face_model: natural`` and a long-tailed gloss frequency (``gloss_zipf``).
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+SPLIT_CYCLE = ("train", "dev", "test") + ("train",) * 7  # 80 / 10 / 10, every split non-empty from 3 clips
+ISOLATED_SPLITS = ("train", "train", "train", "train", "dev", "test")  # per sign: 4 / 1 / 1 of every 6 clips
 
 
 @dataclass(frozen=True)
@@ -21,3 +30,10 @@ class SyntheticCorpusConfig:
     transition_frames: int = 6
     hold_frames: int = 5
     image_size: int = 512
+    # --- the study design (defaults: the embedded corpus as it always was)
+    sentence_split: str = "cycle"  # cycle: sentence i -> SPLIT_CYCLE[i % 10]; held_out: by concept set, see synthetic
+    sentence_splits: tuple[str, ...] = SPLIT_CYCLE  # the split cycle of sentences (cycle) or compositions (held_out)
+    held_out_signers: int = 0  # the last N signers sign only test clips (tagged ``signer_seen: false``)
+    isolated_splits: tuple[str, ...] = ISOLATED_SPLITS  # the split cycle of each sign's isolated clips
+    face_model: str = "lexical"  # lexical: every sign's full non-manual pattern; natural: the statistics of real faces
+    gloss_zipf: float = 0.0  # sentence glosses drawn with weight 1 / rank^s (0 = uniform)

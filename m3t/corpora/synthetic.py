@@ -17,10 +17,41 @@ body model's own parameter space (it stands in for a real signer in front of a c
    confusing pair stay manually identical); isolated clips (one sign, ``label``) for recognition and sentence clips for
    production; a camera per clip. Isolated clips and sentences draw from separate random streams, so growing
    one part leaves the other unchanged.
-4. *Splits*: sentences cycle through :data:`SPLIT_CYCLE` (80 / 10 / 10); the isolated clips of each sign
-   through :data:`ISOLATED_SPLITS` (4 / 1 / 1, the cycle shifted by the sign's label so that the held-out
-   signer varies), so every sign with six clips (``num_signers * isolated_per_sign``) is in every split and
+4. *Splits*: sentences cycle through ``sentence_splits`` (default :data:`SPLIT_CYCLE`, 80 / 10 / 10); the
+   isolated clips of each sign through ``isolated_splits`` (default 4 / 1 / 1, the cycle shifted by the sign's
+   label so that the held-out signer varies), so every sign with six clips (``num_signers * isolated_per_sign``) is in every split and
    recognition is scored on every class.
+
+The study design (``synthetic_corpus`` options, all off by default; the ``study`` preset turns them on). Its
+constants (:data:`NATURAL_FACE`) were set from the priors below before any study was run and are not tuned
+toward any claim's outcome:
+
+- ``sentence_split: held_out``: a sentence's *composition* is its set of concepts, whatever the language. The
+  distinct compositions, in a seeded random order, cycle through ``sentence_splits``; a dev or test composition
+  with a concept no train sentence has moves to train. So every test sentence is a new composition of glosses
+  seen in training sentences, and no test sentence (in any language) is a train sentence. With the default
+  ``cycle`` split, sentence ``i`` of a language goes to ``sentence_splits[i % 10]``, which lets the same sentence
+  land on both sides.
+- ``held_out_signers: N``: the last N signers sign only test clips (sentences and isolated signs); every clip is
+  tagged ``signer_seen``. Under ``held_out`` they sign test compositions only.
+- ``isolated_splits``: the per-sign cycle of isolated clips, e.g. a 12-clip cycle with 5 test slots gives the
+  recognition probe >= 10 test clips per class from 24 clips per sign.
+- ``gloss_zipf: s``: sentence glosses are drawn with weight ``1 / rank^s`` (ranks in a seeded random order of
+  the lexicon), as sign frequency in real corpora is long-tailed. Isolated clips stay balanced per class, as in
+  NMFs-CSL.
+- ``face_model: natural``: the face of real signing is near-neutral most of the time and moves in brief,
+  variable events, not in a whole-sign plateau per sign.
+  - Mouthings are brief (40-90 % of their viseme's slot) with a log-normal amplitude (sigma 0.3) per
+    performance. A normal sign carries its mouthing in half of its performances, its brows / eyes in 30 %:
+    mouthing and brow use vary between signers and sign languages. The confusing pairs' non-manual features
+    are lexical: always present (they are the only difference between the two signs), still brief and
+    variable.
+  - Idle motion: every facial action follows its own slow random walk (Ornstein-Uhlenbeck, 0.5 s correlation
+    time, absolute value since actions are non-negative activations). Standard deviations fall as
+    ``0.05 / rank`` over a seeded random order of the actions, the decaying spectrum of PCA expression
+    coefficients: a few actions carry most of the idle variance.
+  - Spontaneous blinks: Poisson, 0.3 per second (adults blink about 15-20 times a minute), 0.2 s each.
+  - Every signer has a resting face: three actions held at 0.02-0.12.
 
 Rotations of the generator are rotation vectors applied on top of the template pose:
 ``R = exp(rotvec) @ R_rest`` (world-aligned axes, Anny's ``local-ref`` parameterisation).
@@ -33,6 +64,7 @@ import os
 import shutil
 import tempfile
 import zipfile
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -44,7 +76,7 @@ from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
 from m3t.camera import Camera, look_at
 from m3t.corpora.clip import Clip
-from m3t.corpora.config import SyntheticCorpusConfig
+from m3t.corpora.config import SPLIT_CYCLE, SyntheticCorpusConfig
 from m3t.corpora.synthetic_lexicon import (
     BROWS,
     CONCEPTS,
@@ -55,10 +87,23 @@ from m3t.corpora.synthetic_lexicon import (
     SignForm,
     build_lexicon,
     make_sentence,
+    zipf_weights,
 )
 
-SPLIT_CYCLE = ("train", "dev", "test") + ("train",) * 7  # 80 / 10 / 10, every split non-empty from 3 clips
-ISOLATED_SPLITS = ("train", "train", "train", "train", "dev", "test")  # per sign: 4 / 1 / 1 of every 6 clips
+SENTENCE_SPLITS = ("cycle", "held_out")
+FACE_MODELS = ("lexical", "natural")
+NATURAL_FACE = {  # face_model: natural (fixed before any study run; the module docstring gives the reasons)
+    "mouthing_prob_normal": 0.5,  # a normal sign's mouthing is present in this share of its performances
+    "brows_prob_normal": 0.3,  # ... its brows / eyes
+    "mouthing_duration": (0.4, 0.9),  # a viseme's bump, as a share of its slot
+    "amplitude_sigma": 0.3,  # log-normal spread of an event's amplitude
+    "idle_std": 0.05,  # the idle random walk of the most mobile action; the k-th: idle_std / k
+    "idle_tau_s": 0.5,
+    "blink_rate_hz": 0.3,
+    "blink_s": 0.2,
+    "rest_actions": 3,
+    "rest_range": (0.02, 0.12),
+}
 ARM = ("clavicle", "upperarm01", "lowerarm01", "wrist")
 
 
@@ -207,6 +252,78 @@ def _face_curve(sign: SignForm, frames: int, labels: tuple[str, ...]) -> np.ndar
     return np.clip(face, 0.0, 1.0)
 
 
+def _bump(s: np.ndarray, centre: float, width: float) -> np.ndarray:
+    return np.clip(np.cos(np.clip((s - centre) / width, -0.5, 0.5) * np.pi), 0, 1)
+
+
+def _amplitude(rng: np.random.Generator) -> float:
+    return float(np.exp(rng.normal(0.0, NATURAL_FACE["amplitude_sigma"])))
+
+
+def _natural_face_curve(sign: SignForm, frames: int, labels: tuple[str, ...], rng: np.random.Generator) -> np.ndarray:
+    """(frames, F) facial actions of one performance under ``face_model: natural``: brief mouthings of variable
+    amplitude, present always on confusing signs (lexical) and sometimes on normal ones; brows / eyes likewise."""
+    face = np.zeros((frames, len(labels)), dtype=np.float32)
+    index = {name: i for i, name in enumerate(labels)}
+    s = np.linspace(0.0, 1.0, frames)
+    lexical = sign.group == "confusing"
+    if lexical or rng.random() < NATURAL_FACE["mouthing_prob_normal"]:
+        width = 1.0 / len(sign.mouthing)
+        for i, viseme in enumerate(sign.mouthing):
+            centre = (i + 0.5 + rng.uniform(-0.1, 0.1)) * width
+            bump = _amplitude(rng) * _bump(s, centre, width * rng.uniform(*NATURAL_FACE["mouthing_duration"]))
+            for action, w in VISEMES[viseme].items():
+                face[:, index[action]] += w * bump
+    if lexical or rng.random() < NATURAL_FACE["brows_prob_normal"]:
+        amp = _amplitude(rng)
+        plateau = _smoothstep(np.clip(np.minimum(s, 1 - s) * 5, 0, 1))
+        blink = np.exp(-((s - 0.5) / 0.08) ** 2)
+        for action, w in {**BROWS[sign.brows], **EYES[sign.eyes]}.items():
+            curve = blink if sign.eyes == "blink" and action.startswith("eyeBlink") else plateau
+            face[:, index[action]] += amp * w * curve
+    return face
+
+
+@dataclass(frozen=True)
+class FaceStyle:
+    """The corpus-wide idle spectrum and each signer's resting face (``face_model: natural``)."""
+
+    idle_std: np.ndarray  # (F,)
+    rest: dict[str, np.ndarray]  # signer id -> (F,)
+
+    @staticmethod
+    def draw(labels: tuple[str, ...], signers: list[str], rng: np.random.Generator) -> FaceStyle:
+        f = len(labels)
+        idle = NATURAL_FACE["idle_std"] / (1.0 + rng.permutation(f))
+        rest = {}
+        for signer in signers:
+            face = np.zeros(f)
+            face[rng.choice(f, NATURAL_FACE["rest_actions"], replace=False)] = rng.uniform(
+                *NATURAL_FACE["rest_range"], NATURAL_FACE["rest_actions"])
+            rest[signer] = face
+        return FaceStyle(idle, rest)
+
+    def background(self, signer: str, frames: int, fps: float, labels: tuple[str, ...],
+                   rng: np.random.Generator) -> np.ndarray:
+        """(frames, F): the signer's resting face + idle random walks + spontaneous blinks."""
+        a = float(np.exp(-1.0 / (NATURAL_FACE["idle_tau_s"] * fps)))
+        steps = rng.normal(0.0, 1.0, (frames, len(labels))) * self.idle_std * np.sqrt(1 - a * a)
+        walk = np.empty_like(steps)
+        walk[0] = rng.normal(0.0, 1.0, len(labels)) * self.idle_std
+        for t in range(1, frames):
+            walk[t] = a * walk[t - 1] + steps[t]
+        face = self.rest[signer] + np.abs(walk)
+        t = np.arange(frames)
+        length = NATURAL_FACE["blink_s"] * fps
+        blinks = np.zeros(frames)
+        for start in rng.uniform(0, frames, rng.poisson(NATURAL_FACE["blink_rate_hz"] * frames / fps)):
+            blinks = np.maximum(blinks, rng.uniform(0.8, 1.0) * _bump(t, start + length / 2, length))
+        for side in ("eyeBlinkLeft", "eyeBlinkRight"):
+            if side in labels:
+                face[:, labels.index(side)] += blinks
+        return face
+
+
 def _movement(sign: SignForm, frames: int, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
     """Shoulder and elbow rotvec offsets (frames, 3) of the movement pattern."""
     s = np.linspace(0.0, 1.0, frames)[:, None]
@@ -251,7 +368,8 @@ class Synthesiser:
         state["left_hand"][:] = _mirror_rotvec(state["right_hand"][0])
         return state
 
-    def _sign_segment(self, sign: SignForm, frames: int, signer: Signer) -> dict[str, np.ndarray]:
+    def _sign_segment(self, sign: SignForm, frames: int, signer: Signer,
+                      face_rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
         state = self._rest_segment(frames)
         shoulder, elbow = _movement(sign, frames, signer.amplitude)
         arm = np.repeat(self.cal.locations[sign.location][None], frames, axis=0)  # (frames, 4, 3)
@@ -264,16 +382,22 @@ class Synthesiser:
         if sign.two_handed:
             state["body"][:, self.arm_l] = _mirror_rotvec(arm)
             state["left_hand"][:] = _mirror_rotvec(hand)
-        state["face"] = _face_curve(sign, frames, self.body.layout["face"].labels)
+        labels = self.body.layout["face"].labels
+        state["face"] = (_face_curve(sign, frames, labels) if face_rng is None
+                         else _natural_face_curve(sign, frames, labels, face_rng))
         return state
 
-    def synthesise(self, signs: list[SignForm], signer: Signer) -> dict[str, np.ndarray]:
-        """Rest -> signs (co-articulated) -> rest, as params (T, D) float32 per modality."""
+    def synthesise(self, signs: list[SignForm], signer: Signer, face: FaceStyle | None = None,
+                   face_rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+        """Rest -> signs (co-articulated) -> rest, as params (T, D) float32 per modality. With ``face`` (and its
+        per-clip ``face_rng``) the face follows ``face_model: natural``."""
         cfg = self.cfg
+        if (face is None) != (face_rng is None):
+            raise ValueError("synthesise: the natural face needs both its FaceStyle and a per-clip generator")
         per_sign = max(4, int(round(cfg.frames_per_sign / signer.speed)))
         transition = max(2, int(round(cfg.transition_frames / signer.speed)))
         segments = [self._rest_segment(cfg.hold_frames)]
-        segments += [self._sign_segment(s, per_sign, signer) for s in signs]
+        segments += [self._sign_segment(s, per_sign, signer, face_rng) for s in signs]
         segments.append(self._rest_segment(cfg.hold_frames))
         pieces = [segments[0]]
         for seg in segments[1:]:
@@ -286,6 +410,9 @@ class Synthesiser:
         T = state["face"].shape[0]
         sway = 0.03 * np.sin(np.linspace(0, 2 * np.pi, T))[:, None] * np.array([1.0, 0.0, 0.3])
         state["body"][:, self.spine] += signer.posture + sway[:, None]
+        if face is not None:
+            labels = self.body.layout["face"].labels
+            state["face"] = np.clip(state["face"] + face.background(signer.id, T, cfg.fps, labels, face_rng), 0, 1)
         rotvecs = {k: torch.as_tensor(state[k], dtype=torch.float32) for k in self.rest}
         params = _to_params(rotvecs, torch.as_tensor(state["face"], dtype=torch.float32), self.rest)
         return {k: v.numpy().astype(np.float32) for k, v in params.items()}
@@ -324,47 +451,107 @@ def _performance(signer: Signer, rng: np.random.Generator, jitter: float) -> Sig
                   signer.posture + rng.normal(0, np.deg2rad(1.0), 3))
 
 
-def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[SyntheticClip]:
-    """All clips of the corpus (isolated signs first, then sentences per language), deterministic from the seed."""
+def _check(cfg: SyntheticCorpusConfig) -> None:
     unknown = [lang for lang in cfg.languages if lang not in LANGUAGES]
     if unknown:
         raise ValueError(f"synthetic_corpus.languages: {unknown} unknown; allowed: {', '.join(LANGUAGES)}")
+    if cfg.sentence_split not in SENTENCE_SPLITS:
+        raise ValueError(f"synthetic_corpus.sentence_split: {cfg.sentence_split!r}; allowed: "
+                         f"{', '.join(SENTENCE_SPLITS)}")
+    if cfg.face_model not in FACE_MODELS:
+        raise ValueError(f"synthetic_corpus.face_model: {cfg.face_model!r}; allowed: {', '.join(FACE_MODELS)}")
+    if not 0 <= cfg.held_out_signers < cfg.num_signers:
+        raise ValueError(f"synthetic_corpus.held_out_signers={cfg.held_out_signers}: must be >= 0 and leave at least "
+                         f"one of the {cfg.num_signers} signers for training")
+    for key in ("isolated_splits", "sentence_splits"):
+        cycle = getattr(cfg, key)
+        if not cycle or any(x not in ("train", "dev", "test") for x in cycle) or "train" not in cycle:
+            raise ValueError(f"synthetic_corpus.{key}: {list(cycle)}; give a cycle of train / dev / test with train")
+    if cfg.gloss_zipf < 0:
+        raise ValueError(f"synthetic_corpus.gloss_zipf={cfg.gloss_zipf}: must be >= 0 (0 = uniform)")
+
+
+def held_out_splits(glosses: list[list[str]], rng: np.random.Generator,
+                    cycle: tuple[str, ...] = SPLIT_CYCLE) -> list[str]:
+    """Split sentences by composition (their set of concepts): the distinct compositions in a random order go
+    through ``cycle``, then a dev / test composition with a concept no train sentence has moves to
+    train. Returns each sentence's split: no test composition is in train, every test concept is."""
+    keys = [frozenset(g) for g in glosses]
+    distinct = list(dict.fromkeys(keys))
+    split_of = {distinct[i]: cycle[j % len(cycle)] for j, i in enumerate(rng.permutation(len(distinct)))}
+    seen = frozenset().union(*(k for k in distinct if split_of[k] == "train"))
+    moved = True
+    while moved:  # moving a composition to train can only add concepts: this ends
+        moved = False
+        for key in distinct:
+            if split_of[key] != "train" and not key <= seen:
+                split_of[key], seen, moved = "train", seen | key, True
+    return [split_of[k] for k in keys]
+
+
+def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[SyntheticClip]:
+    """All clips of the corpus (isolated signs first, then sentences per language), deterministic from the seed."""
+    _check(cfg)
     rng = np.random.default_rng(cfg.seed)
     lexicon = build_lexicon(cfg.num_signs, cfg.confusing_pairs, rng)
     signers = _signers(cfg, rng)
+    unseen = {s.id for s in signers[len(signers) - cfg.held_out_signers:]} if cfg.held_out_signers else set()
+    seen_signers = [s for s in signers if s.id not in unseen]
     synth = Synthesiser(body, calibrate(body), cfg)
+    face = (FaceStyle.draw(body.layout["face"].labels, [s.id for s in signers], np.random.default_rng([cfg.seed, 4]))
+            if cfg.face_model == "natural" else None)
     clips: list[SyntheticClip] = []
 
     def add(clip_id, signs, signer, performance, language, text, label, extra, split, part_rng):
+        if unseen:
+            extra = [*extra, ("signer_seen", "false" if signer.id in unseen else "true")]
         clip = Clip(id=clip_id, corpus="synthetic", split=split, language=language, signer=signer.id, text=text,
                     gloss=" ".join(s.gloss for s in signs), media=f"motion/{clip_id}.npz", fps=cfg.fps, label=label,
                     extra=tuple(extra))
-        clips.append(SyntheticClip(clip, synth.synthesise(signs, performance), signer.identity.astype(np.float32),
-                                   _camera(part_rng, cfg.image_size)))
+        face_rng = np.random.default_rng([cfg.seed, 5, zlib.crc32(clip_id.encode())]) if face is not None else None
+        clips.append(SyntheticClip(clip, synth.synthesise(signs, performance, face, face_rng),
+                                   signer.identity.astype(np.float32), _camera(part_rng, cfg.image_size)))
 
     isolated_rng, sentence_rng = np.random.default_rng([cfg.seed, 1]), np.random.default_rng([cfg.seed, 2])
     # the rep-th isolated recording session of each signer: one performance for every sign, so the two signs
     # of a confusing pair stay manually identical within a session
     sessions = {(s.id, rep): _performance(s, isolated_rng, cfg.performance_jitter)
                 for rep in range(cfg.isolated_per_sign) for s in signers}
+    cycle = cfg.isolated_splits
     for label, sign in enumerate(lexicon):
         k = 0
         for rep in range(cfg.isolated_per_sign):
             for signer in signers:
                 extra = [("kind", "isolated"), ("group", sign.group), ("pair", str(sign.pair))]
-                split = ISOLATED_SPLITS[(k + label) % len(ISOLATED_SPLITS)]
+                split = "test" if signer.id in unseen else cycle[(k + label) % len(cycle)]
                 add(f"iso-{sign.gloss.lower()}-{signer.id}-{rep}", [sign], signer, sessions[(signer.id, rep)], "ISO-SYN",
                     CONCEPTS[sign.gloss][1], label, extra, split, isolated_rng)
                 k += 1
     by_gloss = {s.gloss: s for s in lexicon}
+    weights = zipf_weights(lexicon, cfg.gloss_zipf, np.random.default_rng([cfg.seed, 3])) if cfg.gloss_zipf else None
+    if cfg.sentence_split == "cycle":
+        for language in cfg.languages:
+            for i in range(cfg.sentences_per_language):
+                length = int(sentence_rng.integers(cfg.min_glosses, cfg.max_glosses + 1))
+                text, glosses = make_sentence(lexicon, language, length, sentence_rng, weights)
+                signer = signers[int(sentence_rng.integers(len(signers)))]
+                performance = _performance(signer, sentence_rng, cfg.performance_jitter)
+                split = "test" if signer.id in unseen else cfg.sentence_splits[i % len(cfg.sentence_splits)]
+                add(f"{language.lower()}-{i:04d}", [by_gloss[g] for g in glosses], signer, performance, language, text,
+                    None, [("kind", "sentence")], split, sentence_rng)
+        return clips
+    drafts = []  # held_out: draw every sentence, split by composition, then cast the signers
     for language in cfg.languages:
         for i in range(cfg.sentences_per_language):
             length = int(sentence_rng.integers(cfg.min_glosses, cfg.max_glosses + 1))
-            text, glosses = make_sentence(lexicon, language, length, sentence_rng)
-            signer = signers[int(sentence_rng.integers(len(signers)))]
-            performance = _performance(signer, sentence_rng, cfg.performance_jitter)
-            add(f"{language.lower()}-{i:04d}", [by_gloss[g] for g in glosses], signer, performance, language, text,
-                None, [("kind", "sentence")], SPLIT_CYCLE[i % len(SPLIT_CYCLE)], sentence_rng)
+            drafts.append((language, i, *make_sentence(lexicon, language, length, sentence_rng, weights)))
+    splits = held_out_splits([d[3] for d in drafts], np.random.default_rng([cfg.seed, 6]), cfg.sentence_splits)
+    for (language, i, text, glosses), split in zip(drafts, splits):
+        pool = signers if split == "test" else seen_signers
+        signer = pool[int(sentence_rng.integers(len(pool)))]
+        performance = _performance(signer, sentence_rng, cfg.performance_jitter)
+        add(f"{language.lower()}-{i:04d}", [by_gloss[g] for g in glosses], signer, performance, language, text,
+            None, [("kind", "sentence")], split, sentence_rng)
     return clips
 
 

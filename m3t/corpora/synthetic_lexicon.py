@@ -148,18 +148,34 @@ def build_lexicon(num_signs: int, confusing_pairs: int, rng: np.random.Generator
     return signs
 
 
-def make_sentence(signs: list[SignForm], language: str, length: int, rng: np.random.Generator) -> tuple[str, list[str]]:
-    """A sentence (text, gloss sequence) of 2..4 glosses in the language's word order."""
+def zipf_weights(signs: list[SignForm], exponent: float, rng: np.random.Generator) -> dict[str, float]:
+    """Gloss -> weight ``1 / rank^exponent``, the ranks a random order of the lexicon: sign frequency in real
+    corpora is long-tailed (a few signs in most sentences, most signs rare)."""
+    ranks = rng.permutation(len(signs)) + 1
+    return {s.gloss: float(r) ** -exponent for s, r in zip(signs, ranks)}
+
+
+def make_sentence(signs: list[SignForm], language: str, length: int, rng: np.random.Generator,
+                  weights: dict[str, float] | None = None) -> tuple[str, list[str]]:
+    """A sentence (text, gloss sequence) of 2..4 glosses in the language's word order; ``weights`` (gloss ->
+    relative frequency) skew which sign of each part of speech is drawn (None: uniform)."""
     by_pos: dict[str, list[str]] = {}
     for s in signs:
         by_pos.setdefault(CONCEPTS[s.gloss][0], []).append(s.gloss)
     missing = [p for p in ("person", "verb") if p not in by_pos]
     if missing:
         raise ValueError(f"the lexicon has no {missing} sign; raise corpus.num_signs")
-    subj = str(rng.choice(by_pos["person"]))
-    verb = str(rng.choice(by_pos["verb"]))
-    obj = str(rng.choice(by_pos["thing"])) if length >= 3 and "thing" in by_pos else None
-    time = str(rng.choice(by_pos["time"])) if length >= 4 and "time" in by_pos else None
+
+    def pick(pos: str) -> str:
+        if weights is None:
+            return str(rng.choice(by_pos[pos]))
+        w = np.array([weights[g] for g in by_pos[pos]])
+        return str(rng.choice(by_pos[pos], p=w / w.sum()))
+
+    subj = pick("person")
+    verb = pick("verb")
+    obj = pick("thing") if length >= 3 and "thing" in by_pos else None
+    time = pick("time") if length >= 4 and "time" in by_pos else None
     word = {"ASL-SYN": 1, "DGS-SYN": 2, "CSL-SYN": 3}[language]
     w = lambda g: CONCEPTS[g][word]  # noqa: E731
     if language == "ASL-SYN":

@@ -10,8 +10,12 @@ one folder each.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -24,12 +28,29 @@ class DataConfig:
     models_dir: str = "models"  # <models_dir>/{tokenizers,smlm,slr,backtranslation}
     generated_dir: str = "data/generated"  # generate-smlm writes <generated_dir>/<corpora joined by '+'>
     metrics_dir: str = "metrics"  # evaluate-* write <metrics_dir>/<model>
+    # clip kinds (a clip's ``kind``, e.g. ``isolated``) left out of the production models' data: the SMLM, SGSA /
+    # PT and the back-translation judges, train and test; the tokenizers and the recognition probe keep them
+    production_skip_kinds: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.train_corpora:
             raise ValueError("train_corpora is empty; name at least one corpus of `corpora` (e.g. [synthetic])")
         if len(set(self.train_corpora)) != len(self.train_corpora):
             raise ValueError(f"train_corpora {list(self.train_corpora)} names a corpus twice")
+
+    def for_production(self, clips: Sequence[T]) -> list[T]:
+        """``clips`` (fitted or token clips, anything with a ``.clip``) without the kinds ``production_skip_kinds``
+        names; a clip without a ``kind`` is kept."""
+        if not self.production_skip_kinds:
+            return list(clips)
+        return [c for c in clips if dict(c.clip.extra).get("kind") not in self.production_skip_kinds]
+
+    def production_version(self, version: str) -> str:
+        """A trainer's data version: the shards' digest, plus the kinds left out (so a resumable checkpoint is
+        never continued on other clips)."""
+        if not self.production_skip_kinds:
+            return version
+        return f"{version}-without-{'+'.join(self.production_skip_kinds)}"
 
     def shards_dir(self, corpus: str) -> Path:
         return Path(self.shards_root) / corpus

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -62,13 +62,14 @@ from m3t.tokenizers.tokenize import load_tokenizers
 
 # ------------------------------------------------------------------------------------------- data
 def load_tokens(data: DataConfig, split: str) -> list[TokenShard]:
-    """The token shards of ``split``, one per training corpus."""
+    """The token shards of ``split``, one per training corpus, without the clip kinds production leaves out."""
     shards = []
     for folder in data.tokens_dirs:
         path = folder / f"{split}.parquet"
         if not path.exists():
             raise FileNotFoundError(f"token shard {path} not found; run the tokenize stage first (dvc repro tokenize)")
-        shards.append(read_token_shard(path))
+        shard = read_token_shard(path)
+        shards.append(replace(shard, clips=tuple(data.for_production(shard.clips))))
     return shards
 
 
@@ -114,7 +115,7 @@ def run_train_smlm(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, body: BodyModel,
         tokenizers, _ = load_tokenizers(data.tokenizers_dir)
         evaluator = SMLMEvaluator(body, tokenizers, vocab, dev, references(data, "dev"),
                                   max_clips=cfg.eval_max_clips, translation=cfg.translation_objective)
-    version = data_version([s.path for split in ("train", "dev") for s in shards[split]])
+    version = data.production_version(data_version([s.path for split in ("train", "dev") for s in shards[split]]))
     out_dir = data.smlm_dir
     # best and last live in the cache under the run key (a killed run continues where it stopped; a finished
     # one is not redone); smlm.pt only ever holds the best of a finished run
