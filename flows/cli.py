@@ -18,6 +18,8 @@
     m3t sgsa-study [--seeds 0 1 2]        the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t claims [--min-seeds 3]            the papers' claims on the runs: paper vs ours, interval, verdict, run ids
+    m3t study [--preset study] [--seeds 0 1 2] [--dry-run] [--only ...]
+                                          run every variant and seed the claims need (resumable), judge them
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
 """
@@ -268,6 +270,18 @@ def _cmd_sgsa_study(args: argparse.Namespace) -> int:
     return 0 if summary["comparisons"] else 1
 
 
+def _cmd_study(args: argparse.Namespace) -> int:
+    from flows.study import StudyError, study
+    from m3t.config import ConfigError
+
+    try:
+        return study(args.params, args.preset, args.seeds, args.root, dry_run=args.dry_run, only=args.only or (),
+                     claims=not args.no_claims)
+    except (ConfigError, StudyError) as err:
+        print(f"m3t study: {err}", file=sys.stderr)
+        return 1
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -335,6 +349,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-seeds", type=int, default=3, help="fewer seeds per variant: inconclusive")
     p.add_argument("--out", default=None, help="folder of claims.json / claims.md (default: data.metrics_dir)")
     p.set_defaults(func=_cmd_claims)
+    p = sub.add_parser("study", help="run every variant and seed the claims need (resumable), then judge the claims")
+    p.add_argument("--preset", default="study")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--root", default=None, help="folder of everything the study writes (default studies/<preset>)")
+    p.add_argument("--dry-run", action="store_true", help="print the plan (writes only the params files)")
+    p.add_argument("--only", nargs="+", default=None, metavar="STAGE",
+                   help="only these steps: stage names, variants (slr-s0) or variant.stage")
+    p.add_argument("--no-claims", action="store_true", help="do not judge the claims at the end")
+    p.set_defaults(func=_cmd_study)
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
     p.set_defaults(func=_cmd_sgsa_table)
