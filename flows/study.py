@@ -387,6 +387,7 @@ def study(params_path: str | Path, preset: str, seeds: Sequence[int], root: str 
         print(f"written: {root / 'metrics' / 'claims.json'}, {root / 'metrics' / 'claims.md'}")
         from dashboards.build import build_dashboard
 
-        index = build_dashboard(load_params(root / "params" / f"{SHARED}.yaml"), root / "dashboard")
+        shared = load_params(root / "params" / f"{SHARED}.yaml")
+        index = build_dashboard(shared, shared.experiment.dashboard_dir)
         print(f"dashboard of the study: {index}")
     return 0 if summary.ok else 1
