@@ -177,3 +177,20 @@ def test_bad_requests_are_refused_with_the_key_or_name(params, tmp_path, capsys)
     params.write_text(yaml.safe_dump(tree))
     assert cli_main(["--params", str(params), "study", "--preset", "tiny", "--root", str(root)]) == 1
     assert "sgsa.temporal_adjacency is 0" in capsys.readouterr().err
+
+
+def test_on_real_corpora_the_study_fits_them_and_generates_nothing(params, tmp_path):
+    # the same command on real data: train_corpora names downloaded corpora (their roots stay where they are)
+    raw = yaml.safe_load(params.read_text(encoding="utf-8"))
+    raw["data"]["train_corpora"] = ["phoenix14t"]
+    raw["corpora"]["phoenix14t"] = {"root": str(tmp_path / "raw" / "phoenix14t")}
+    raw["slr"]["corpus"] = "phoenix14t"
+    params.write_text(yaml.safe_dump(raw), encoding="utf-8")
+    steps = plan(params, "study", [0, 1, 2], tmp_path / "study")
+    shared = [s.stage for s in steps if s.variant == "shared"]
+    assert "generate-corpus" not in shared and "fit-corpus-phoenix14t" in shared
+    fit = next(s for s in steps if s.stage == "fit-corpus-phoenix14t")
+    assert fit.argv[-2:] == ("--corpus", "phoenix14t")
+    written = load_params(fit.params)
+    assert written.corpora["phoenix14t"].root == str(tmp_path / "raw" / "phoenix14t")  # the data is read in place
+    assert _under(written.data.shards_root, tmp_path / "study") and written.experiment.experiment == "m3t-study"
