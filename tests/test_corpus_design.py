@@ -130,3 +130,26 @@ def test_production_models_leave_the_isolated_signs_out(study):
     assert len(kept) == len(_sentences(study))
     assert DataConfig().for_production(study) == list(study)
     assert data.production_version("abc") != DataConfig().production_version("abc") == "abc"
+
+
+def _twin_splits(clips) -> Counter:
+    """For each test clip of a confusing sign: the split of its manual twin (same pair, signer and session)."""
+    sessions: dict[tuple, dict[int, str]] = {}
+    for c in clips:
+        if c.clip.get("group") == "confusing":
+            sessions.setdefault((c.clip.get("pair"), c.clip.signer, c.clip.id.rsplit("-", 1)[1]), {})[
+                c.clip.label] = c.clip.split
+    out = Counter()
+    for by_label in sessions.values():
+        a, b = sorted(by_label)
+        out.update(by_label[twin] for me, twin in ((a, b), (b, a)) if by_label[me] == "test")
+    return out
+
+
+def test_twins_share_a_split_so_no_test_clip_has_its_manual_twin_in_train(body):
+    cfg = dataclasses.replace(BASE, num_signs=8, confusing_pairs=2, isolated_per_sign=2, sentences_per_language=3,
+                              isolated_splits=("train", "test", "train", "dev", "train", "test"))
+    apart = _twin_splits(generate_corpus(cfg, body))
+    assert apart["train"] > 0  # shifted by label, a test clip's identical manual twin is trained on
+    together = _twin_splits(generate_corpus(dataclasses.replace(cfg, twins_share_split=True), body))
+    assert together["test"] > 0 and set(together) == {"test"}

@@ -35,5 +35,6 @@ class SyntheticCorpusConfig:
     sentence_splits: tuple[str, ...] = SPLIT_CYCLE  # the split cycle of sentences (cycle) or compositions (held_out)
     held_out_signers: int = 0  # the last N signers sign only test clips (tagged ``signer_seen: false``)
     isolated_splits: tuple[str, ...] = ISOLATED_SPLITS  # the split cycle of each sign's isolated clips
+    twins_share_split: bool = False  # a confusing pair's two clips of one session go to one split (see synthetic)
     face_model: str = "lexical"  # lexical: every sign's full non-manual pattern; natural: the statistics of real faces
     gloss_zipf: float = 0.0  # sentence glosses drawn with weight 1 / rank^s (0 = uniform)

@@ -36,6 +36,11 @@ toward any claim's outcome:
   tagged ``signer_seen``. Under ``held_out`` they sign test compositions only.
 - ``isolated_splits``: the per-sign cycle of isolated clips, e.g. a 12-clip cycle with 5 test slots gives the
   recognition probe >= 10 test clips per class from 24 clips per sign.
+- ``twins_share_split``: the two signs of a confusing pair are manually identical within a recording session.
+  With the cycle shifted by label (the default), a test clip's manual twin from the same session lands in train
+  under the other label, so a probe without the face recalls the wrong twin (below chance); real corpora record
+  the two signs apart. With ``true`` both clips of a session share the split (the cycle shifted by the pair's
+  first label).
 - ``gloss_zipf: s``: sentence glosses are drawn with weight ``1 / rank^s`` (ranks in a seeded random order of
   the lexicon), as sign frequency in real corpora is long-tailed. Isolated clips stay balanced per class, as in
   NMFs-CSL.
@@ -518,12 +523,14 @@ def generate_corpus(cfg: SyntheticCorpusConfig, body: BodyModel) -> list[Synthet
     sessions = {(s.id, rep): _performance(s, isolated_rng, cfg.performance_jitter)
                 for rep in range(cfg.isolated_per_sign) for s in signers}
     cycle = cfg.isolated_splits
+    first_of_pair: dict[int, int] = {}
     for label, sign in enumerate(lexicon):
         k = 0
+        shift = first_of_pair.setdefault(sign.pair, label) if cfg.twins_share_split and sign.pair >= 0 else label
         for rep in range(cfg.isolated_per_sign):
             for signer in signers:
                 extra = [("kind", "isolated"), ("group", sign.group), ("pair", str(sign.pair))]
-                split = "test" if signer.id in unseen else cycle[(k + label) % len(cycle)]
+                split = "test" if signer.id in unseen else cycle[(k + shift) % len(cycle)]
                 add(f"iso-{sign.gloss.lower()}-{signer.id}-{rep}", [sign], signer, sessions[(signer.id, rep)], "ISO-SYN",
                     CONCEPTS[sign.gloss][1], label, extra, split, isolated_rng)
                 k += 1
