@@ -41,7 +41,7 @@ from m3t.body.skeleton import SkeletonGraph
 from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.text import SLT_DEFINITION, slt_metrics_by_language, slt_scores, slt_unit
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import data_version, read_split, shard_layout
+from m3t.shards.io import production_data_version, read_production_split, shard_layout
 from m3t.shards.schema import FittedClip, layout_to_json
 from m3t.shards.skeletons import skeleton_clip
 
@@ -101,8 +101,8 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
     """Train every language's model; ``on_epoch(language, record, epoch)`` sees each epoch's record. Returns
     the numbers written to ``metrics.json`` (``<language>/<name>``). With ``skeleton`` the models read skeletons
     (``backtranslation.input_layout`` is ignored) and go to ``data.skeleton_judge_dir``."""
-    train = data.for_production(read_split(data.shards_dirs, "train"))
-    dev = data.for_production(read_split(data.shards_dirs, "dev"))
+    train = read_production_split(data, "train")
+    dev = read_production_split(data, "dev")
     if not train:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no clip")
     if skeleton is not None:
@@ -115,8 +115,7 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
     if not languages:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no sentence clip (only isolated signs); "
                          "back-translation needs sentences")
-    version = data.production_version(
-        data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")]))
+    version = production_data_version(data)
     train_by, dev_by = _by_language(train), _by_language(dev)
     skipped = [{"clip_id": c.clip.id, "split": c.clip.split, "language": c.clip.language,
                 "reason": skip_reason(c.clip, c.num_frames) or "language not in backtranslation.languages"}
@@ -254,7 +253,7 @@ def run_evaluate_backtranslation(model_cfg: BackTranslationConfig, data: DataCon
     """The ground-truth upper bound (M3T Tab. 2, "GT 3DMM"): the fitted motion of ``split`` back-translated.
     Isolated signs, clips with empty text and languages outside ``backtranslation.languages`` are skipped with
     their reason; every other clip is scored."""
-    clips = data.for_production(read_split(data.shards_dirs, split))
+    clips = read_production_split(data, split)
     chosen, skipped = {}, []
     for c in clips:
         reason = skip_reason(c.clip, c.num_frames)

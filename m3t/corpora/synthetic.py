@@ -17,10 +17,10 @@ body model's own parameter space (it stands in for a real signer in front of a c
    confusing pair stay manually identical); isolated clips (one sign, ``label``) for recognition and sentence clips for
    production; a camera per clip. Isolated clips and sentences draw from separate random streams, so growing
    one part leaves the other unchanged.
-4. *Splits*: sentences cycle through ``sentence_splits`` (default :data:`SPLIT_CYCLE`, 80 / 10 / 10); the
-   isolated clips of each sign through ``isolated_splits`` (default 4 / 1 / 1, the cycle shifted by the sign's
-   label so that the held-out signer varies), so every sign with six clips (``num_signers * isolated_per_sign``) is in every split and
-   recognition is scored on every class.
+4. *Splits*: sentences cycle through ``sentence_splits`` (default :data:`SPLIT_CYCLE`, 80 / 10 / 10);
+   the isolated clips of each sign through ``isolated_splits`` (default 4 / 1 / 1, the cycle shifted by the
+   sign's label so that the held-out signer varies), so every sign with six clips
+   (``num_signers * isolated_per_sign``) is in every split and recognition is scored on every class.
 
 The study design (``synthetic_corpus`` options, all off by default; the ``study`` preset turns them on). Its
 constants (:data:`NATURAL_FACE`) were set from the priors below before any study was run and are not tuned
@@ -247,18 +247,24 @@ def _face_curve(sign: SignForm, frames: int, labels: tuple[str, ...]) -> np.ndar
     centres = (np.arange(len(sign.mouthing)) + 0.5) / len(sign.mouthing)
     width = 1.0 / len(sign.mouthing)
     for viseme, c in zip(sign.mouthing, centres):
-        bump = np.clip(np.cos(np.clip((s - c) / width, -0.5, 0.5) * np.pi), 0, 1)
+        bump = _bump(s, c, width)
         for action, w in VISEMES[viseme].items():
             face[:, index[action]] += w * bump
-    plateau = _smoothstep(np.clip(np.minimum(s, 1 - s) * 5, 0, 1))
-    blink = np.exp(-((s - 0.5) / 0.08) ** 2)
-    for action, w in {**BROWS[sign.brows], **EYES[sign.eyes]}.items():
-        face[:, index[action]] += w * (blink if sign.eyes == "blink" and action.startswith("eyeBlink") else plateau)
+    _add_brows_eyes(face, index, sign, s)
     return np.clip(face, 0.0, 1.0)
 
 
 def _bump(s: np.ndarray, centre: float, width: float) -> np.ndarray:
     return np.clip(np.cos(np.clip((s - centre) / width, -0.5, 0.5) * np.pi), 0, 1)
+
+
+def _add_brows_eyes(face: np.ndarray, index: dict[str, int], sign: SignForm, s: np.ndarray, amp: float = 1.0) -> None:
+    """Add the sign's brows / eyes pattern (a plateau over the sign; a lexical blink as a bump) to ``face``."""
+    plateau = _smoothstep(np.clip(np.minimum(s, 1 - s) * 5, 0, 1))
+    blink = np.exp(-((s - 0.5) / 0.08) ** 2)
+    for action, w in {**BROWS[sign.brows], **EYES[sign.eyes]}.items():
+        curve = blink if sign.eyes == "blink" and action.startswith("eyeBlink") else plateau
+        face[:, index[action]] += amp * w * curve
 
 
 def _amplitude(rng: np.random.Generator) -> float:
@@ -280,12 +286,7 @@ def _natural_face_curve(sign: SignForm, frames: int, labels: tuple[str, ...], rn
             for action, w in VISEMES[viseme].items():
                 face[:, index[action]] += w * bump
     if lexical or rng.random() < NATURAL_FACE["brows_prob_normal"]:
-        amp = _amplitude(rng)
-        plateau = _smoothstep(np.clip(np.minimum(s, 1 - s) * 5, 0, 1))
-        blink = np.exp(-((s - 0.5) / 0.08) ** 2)
-        for action, w in {**BROWS[sign.brows], **EYES[sign.eyes]}.items():
-            curve = blink if sign.eyes == "blink" and action.startswith("eyeBlink") else plateau
-            face[:, index[action]] += amp * w * curve
+        _add_brows_eyes(face, index, sign, s, _amplitude(rng))
     return face
 
 

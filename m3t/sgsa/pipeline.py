@@ -33,7 +33,7 @@ from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.scorer import PointPair, score_point_pairs
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import data_version, read_split
+from m3t.shards.io import production_data_version, read_production_split
 from m3t.shards.skeletons import SKELETON_STREAM, graph_points, skeleton_clips
 from m3t.sgsa.checkpoint import STAGE, LoadedSGSA, load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
@@ -54,17 +54,14 @@ def run_train(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body: BodyModel, data
               progress: bool = True) -> dict[str, float]:
     """Train every system of ``cfg.systems``; ``on_epoch(system, record, epoch)`` sees each epoch's record."""
     graph = graph_for(model_cfg.skeleton, model_cfg.face_points)
-    train_clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, "train")), graph, progress,
-                                 "skeletons: train")
-    dev_clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, "dev")), graph, progress,
-                               "skeletons: dev")
+    train_clips = skeleton_clips(body, read_production_split(data, "train"), graph, progress, "skeletons: train")
+    dev_clips = skeleton_clips(body, read_production_split(data, "dev"), graph, progress, "skeletons: dev")
     if not train_clips:
         raise ValueError(f"the train split of {list(data.train_corpora)} has no clip with frames")
     text_vocab, gloss_vocab = vocabularies(train_clips, model_cfg)
     train = make_samples(train_clips, text_vocab, gloss_vocab, model_cfg, training=True)
     dev = make_samples(dev_clips, text_vocab, gloss_vocab, model_cfg, training=False)
-    version = data.production_version(
-        data_version([folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev")]))
+    version = production_data_version(data)
     out = data.sgsa_dir
     report: dict[str, float] = {"train_clips": float(len(train.samples)), "dev_clips": float(len(dev.samples)),
                                 "skipped_clips": float(len(train.skipped) + len(dev.skipped)),
@@ -167,8 +164,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
     videos: dict[str, dict[str, np.ndarray]] = {}
     shown: list[Sample] = []
     for split in cfg.splits:
-        clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, split)), graph, progress,
-                               f"skeletons: {split}")
+        clips = skeleton_clips(body, read_production_split(data, split), graph, progress, f"skeletons: {split}")
         sets = make_samples(clips, first.text_vocab, first.gloss_vocab, model_cfg, training=False)
         samples = sets.samples
         skipped.extend(sets.skipped)

@@ -33,7 +33,7 @@ from m3t.sgsa.data import make_samples, vocabularies
 from m3t.sgsa.evaluate import generate, score_production
 from m3t.sgsa.train import run_key, train_sgsa
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import data_version, read_split
+from m3t.shards.io import production_data_version, read_production_split
 from m3t.shards.skeletons import SKELETON_STREAM, skeleton_clips
 
 LOWER_IS_BETTER = {"dtw_jpe_mean_m": True, "dtw_jpe_mean_pathnorm_m": True, "rouge_l": False}
@@ -55,19 +55,15 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
     """Train and score every variant for every seed; write ``claims.json`` and ``claims.md`` into ``out_dir``."""
     judge = judge or BackTranslationConfig()
     graph = graph_for(model_cfg.skeleton, model_cfg.face_points)
-    train_clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, "train")), graph, progress,
-                                 "skeletons: train")
-    dev_clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, "dev")), graph, progress,
-                               "skeletons: dev")
-    test_clips = skeleton_clips(body, data.for_production(read_split(data.shards_dirs, split)), graph, progress,
-                                f"skeletons: {split}")
+    train_clips = skeleton_clips(body, read_production_split(data, "train"), graph, progress, "skeletons: train")
+    dev_clips = skeleton_clips(body, read_production_split(data, "dev"), graph, progress, "skeletons: dev")
+    test_clips = skeleton_clips(body, read_production_split(data, split), graph, progress, f"skeletons: {split}")
     text_vocab, gloss_vocab = vocabularies(train_clips, model_cfg)
     train = make_samples(train_clips, text_vocab, gloss_vocab, model_cfg, training=True).samples
     dev = make_samples(dev_clips, text_vocab, gloss_vocab, model_cfg, training=False).samples
     test = make_samples(test_clips, text_vocab, gloss_vocab, model_cfg, training=False).samples
     sentences = [s for s in test if s.sentence]
-    version = data.production_version(
-        data_version([folder / f"{part}.parquet" for folder in data.shards_dirs for part in ("train", "dev")]))
+    version = production_data_version(data)
     per_clip: dict[str, dict[str, dict[str, np.ndarray]]] = {c: {} for c in counters}  # counter -> variant -> (R, C)
     corpus: dict[str, dict[str, dict[str, list[float]]]] = {c: {} for c in counters}  # ... -> metric -> per seed
     for name, cfg in variants(model_cfg).items():

@@ -279,6 +279,20 @@ def read_split(shards_dirs: list[Path] | Path, split: str, modalities=None) -> l
     return clips
 
 
+def read_production_split(data, split: str) -> list:
+    """The fitted clips of ``split`` over ``data``'s training corpora (a :class:`m3t.shards.folders.DataConfig`),
+    without the clip kinds ``data.production_skip_kinds`` leaves out: the data of the production models (SMLM,
+    SGSA / PT, back-translation)."""
+    return data.for_production(read_split(data.shards_dirs, split))
+
+
+def production_data_version(data) -> str:
+    """The data version a production model trains on: the digest of the train and dev shards, plus the kinds
+    left out."""
+    return data.production_version(data_version([folder / f"{split}.parquet" for folder in data.shards_dirs
+                                                 for split in ("train", "dev")]))
+
+
 def data_version(paths: list[Path]) -> str:
     """Digest of the data files a model is trained on, by name and bytes (part of every trainer's resume key and
     checkpoint)."""
