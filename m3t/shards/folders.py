@@ -43,7 +43,7 @@ class DataConfig:
         names; a clip without a ``kind`` is kept."""
         if not self.production_skip_kinds:
             return list(clips)
-        return [c for c in clips if dict(c.clip.extra).get("kind") not in self.production_skip_kinds]
+        return [c for c in clips if c.clip.get("kind") not in self.production_skip_kinds]
 
     def production_version(self, version: str) -> str:
         """A trainer's data version: the shards' digest, plus the kinds left out (so a resumable checkpoint is
