@@ -74,6 +74,24 @@ def test_forward_matches_anny_reference(body):
     assert torch.allclose(ours.joints, ref["bone_poses"][..., :3, 3], atol=1e-5)
 
 
+def test_moving_one_body_leaves_the_others_where_they_are(body):
+    """``.to()`` of one AnnyBody must not move the process-wide Anny instance every other body shares: a GPU
+    fitter beside a CPU scorer failed with 'found at least two devices'. A dtype stands in for the device."""
+    from m3t.body.anny_body import AnnyBody
+
+    params = random_params(body, 2, seed=5)
+    identity = torch.tensor([0.2, 0.7, 0.4, 0.6, 0.3, 0.5])
+    before = body.forward(params, identity).vertices
+    wide = AnnyBody().double()
+    assert wide._anny is not body._anny and wide._anny.template_vertices.dtype == torch.float64
+    out = wide.forward({k: v.double() for k, v in params.items()}, identity.double())
+    assert out.vertices.dtype == torch.float64
+    assert torch.allclose(out.vertices.float(), before, atol=1e-5)
+    assert body._anny.template_vertices.dtype == torch.float32
+    assert torch.equal(body.forward(params, identity).vertices, before)
+    assert AnnyBody().double()._anny is wide._anny  # one copy per (device, dtype) and process
+
+
 @pytest.mark.parametrize("reference", ["anny", "none"])
 @pytest.mark.parametrize("per_frame_identity", [False, True])
 def test_sparse_forward_equals_full_forward(body, monkeypatch, reference, per_frame_identity):

@@ -19,6 +19,7 @@ Axis legend: B frames, V vertices, J bones, K keypoints, N blendshapes.
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import threading
@@ -57,12 +58,15 @@ def hand_bones(side: str) -> tuple[str, ...]:
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 
 _MODEL_LOCK = threading.Lock()
-_MODELS: dict[str, object] = {}
+_MODELS: dict[object, object] = {}
 
 
-def _load_anny(cache_dir: Path):
-    """Build (first time ~1 min, ~800 MB cache) or load the Anny model; one instance per process."""
+def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch.dtype = torch.float32):
+    """Build (first time ~1 min, ~800 MB cache) or load the Anny model; one instance per process and
+    (device, dtype), the others copied from the CPU float32 one. Callers never move a returned instance: it is
+    shared by every :class:`AnnyBody` of the process on that device."""
     key = str(Path(cache_dir).resolve())
+    device = torch.device(device or "cpu")
     with _MODEL_LOCK:
         if key not in _MODELS:
             import anny
@@ -71,8 +75,23 @@ def _load_anny(cache_dir: Path):
             Path(key).mkdir(parents=True, exist_ok=True)
             anny.paths.set_anny_cache_path(key)
             os.environ.setdefault("ANNY_CACHE_DIR", key)
-            _MODELS[key] = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref").to(torch.float32)
-        return _MODELS[key]
+            # On one thread: Anny's first build (which writes the cache every later load reads) gives other
+            # blendshape buffers on 2 threads than on 1 (entries up to 32 apart; three 1-thread builds, under
+            # different hash seeds, were identical), and fits depended on which process built the cache (same
+            # code and corpus: shard values up to 3e-3 apart).
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref")
+            finally:
+                torch.set_num_threads(threads)
+            _MODELS[key] = model.to(torch.float32)
+        variant = (key, str(device), dtype)
+        if (device.type, dtype) == ("cpu", torch.float32):
+            return _MODELS[key]
+        if variant not in _MODELS:
+            _MODELS[variant] = copy.deepcopy(_MODELS[key]).to(device=device, dtype=dtype)
+        return _MODELS[variant]
 
 
 @dataclass(frozen=True)
@@ -103,7 +122,12 @@ class AnnyBody(torch.nn.Module):
     def __init__(self, cache_dir: str | Path = DEFAULT_CACHE_DIR):
         super().__init__()
         model = _load_anny(Path(cache_dir))
-        self._anny = model  # used for phenotype -> blendshape weights and the kinematic chain only
+        self._cache_dir = Path(cache_dir).resolve()
+        # Used for phenotype -> blendshape weights and the kinematic chain only. Kept out of the registered
+        # submodules: ``.to()`` would otherwise move the process-wide shared instance and break every other
+        # AnnyBody of the process (a CPU scorer beside a GPU fitter); :meth:`_apply` swaps in the copy for the
+        # new device and dtype instead.
+        self.__dict__["_anny"] = model
         labels = list(model.bone_labels)
         self.joint_names = tuple(labels)
         self.joint_parents = tuple(int(p) for p in model.bone_parents)
@@ -151,6 +175,13 @@ class AnnyBody(torch.nn.Module):
         base[0] = torch.eye(4)  # the root stays at the origin; the camera carries the global placement
         base[:, :3, 3] = 0.0
         self.register_buffer("base_delta", base, persistent=False)  # (J, 4, 4)
+
+    def _apply(self, fn, recurse: bool = True):
+        out = super()._apply(fn, recurse)
+        if self._anny.template_vertices.device != self.template.device \
+                or self._anny.template_vertices.dtype != self.template.dtype:
+            self.__dict__["_anny"] = _load_anny(self._cache_dir, self.template.device, self.template.dtype)
+        return out
 
     # ------------------------------------------------------------------ parameters
     def rest_params(self, batch: int) -> dict[str, torch.Tensor]:
@@ -297,10 +328,14 @@ class AnnyBody(torch.nn.Module):
         transforms = torch.cat([t_rot, w_trans - t_rot @ h[..., None]], -1)  # (B, J'', 3, 4)
         return transforms, w_trans[..., 0]
 
-    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex) -> torch.Tensor:
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex,
+                          identity_index: torch.Tensor | None = None) -> torch.Tensor:
         kp = keypoints if isinstance(keypoints, AnnyKeypoints) else self._gathered(keypoints)
         coeffs = self._identity_coeffs(identity)
-        transforms, heads = self._keypoint_bones(params, self._rest_bones(coeffs, kp.bones), kp)
+        rest_bones = self._rest_bones(coeffs, kp.bones)
+        if identity_index is not None:  # one identity per clip: the shape work once per clip, then per frame
+            coeffs, rest_bones = coeffs[identity_index], rest_bones[identity_index]
+        transforms, heads = self._keypoint_bones(params, rest_bones, kp)
         rest = kp.rest + torch.einsum("bn,nkc->bkc", coeffs, kp.pheno_bs)
         rest = rest + torch.einsum("bf,fkc->bkc", params["face"], kp.face_bs)  # (B, K, 3)
         rest = torch.cat([rest, torch.ones_like(rest[..., :1])], -1)  # homogeneous (B, K, 4)
