@@ -155,8 +155,10 @@ class BodyModel(Protocol):
     def keypoint_set(self, correspondence: Correspondence) -> object:
         """Precompute what :meth:`forward_keypoints` needs for these landmarks (done once per fit)."""
 
-    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: object) -> torch.Tensor:
-        """Sparse forward: (B, K, 3) positions of the landmarks only (zeros where there is no correspondence)."""
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: object,
+                          identity_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Sparse forward: (B, K, 3) positions of the landmarks only (zeros where there is no correspondence).
+        ``identity`` (P,) or (B, P); with ``identity_index`` (B,), (C, P) identities and each frame's row."""
 
     def correspondence(self, landmark_set: str) -> Correspondence:
         """The stored landmark correspondence for a tracker layout (e.g. ``'mediapipe_holistic'``)."""

@@ -197,7 +197,10 @@ class SMPLFXBody(torch.nn.Module):
     def keypoint_set(self, correspondence: Correspondence) -> KeypointIndex:
         return KeypointIndex.from_correspondence(correspondence, self.template.device)
 
-    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex) -> torch.Tensor:
+    def forward_keypoints(self, params: Params, identity: torch.Tensor, keypoints: KeypointIndex,
+                          identity_index: torch.Tensor | None = None) -> torch.Tensor:
+        if identity_index is not None:
+            identity = identity.reshape(-1, identity.shape[-1])[identity_index]
         coeffs, rest_joints, glob_rot, pos, pose_feature = self._posed(params, identity)
         vidx = keypoints.vertex_index
         rest = self._rest_points(coeffs, params["face"].to(self.template.dtype), pose_feature, vidx)

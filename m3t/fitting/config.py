@@ -29,7 +29,9 @@ class FittingConfig:
     focal_guess: float = 1.2  # focal length in units of max(width, height) when the track has no intrinsics
     camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
     device: str = "cpu"
-    solver: Literal["lbfgs", "adam"] = "lbfgs"  # adam: the first solver (it used 200 + 100 steps)
+    # lbfgs_lockstep: every clip of a batch its own L-BFGS (and identity), one objective evaluation for all
+    # (m3t.fitting.lockstep); adam: the first solver (it used 200 + 100 steps)
+    solver: Literal["lbfgs", "adam", "lbfgs_lockstep"] = "lbfgs"
     lbfgs_round: int = 25  # iterations between convergence tests
     lbfgs_history: int = 100
     tolerance: float = 1e-3  # stop once a round improved the loss by less than this (relative)

@@ -336,7 +336,9 @@ def _init_source(clip: Clip, outputs: TrackerOutputs | None) -> str:
 
 def fit_signer_batch(tracks: list[Track], ctx: FitContext) -> list[FitResult]:
     """One signer's tracks fitted with one identity: in chunks of at most ``fit_corpus.batch_frames`` frames,
-    the first chunk fitting the identity and the others holding it."""
+    the first chunk fitting the identity and the others holding it. With ``fitting.solver: lbfgs_lockstep``
+    every clip of a chunk is its own problem, with its own identity (:mod:`m3t.fitting.lockstep`)."""
+    own_identity = ctx.job.fitting.solver == "lbfgs_lockstep"
     chunks: list[list[int]] = [[]]
     frames = 0
     for i, track in enumerate(tracks):
@@ -351,7 +353,7 @@ def fit_signer_batch(tracks: list[Track], ctx: FitContext) -> list[FitResult]:
         for i, result in zip(chunk, fit_tracks([tracks[i] for i in chunk], ctx.body, ctx.job.fitting,
                                                identity=identity)):
             results[i] = result
-        identity = results[chunk[0]].identity
+        identity = None if own_identity else results[chunk[0]].identity
     return results  # type: ignore[return-value]
 
 
@@ -393,8 +395,9 @@ def process_batch(clips: list[Clip], ctx: FitContext) -> list[ClipOutcome]:
         if not fitted:
             fitted.extend(fit_signer_batch(tracks, ctx))
         clip, _, outputs, _ = members[i]
+        shared = f"one per batch: {len(members)} clips of signer {clip.signer!r}"
         init = {"init_source": _init_source(clip, outputs),
-                "identity": f"one per batch: {len(members)} clips of signer {clip.signer!r}"}
+                "identity": "one per clip (lbfgs_lockstep)" if ctx.job.fitting.solver == "lbfgs_lockstep" else shared}
         return fitted_record(clip, tracks[i], fitted[i], key, ctx), init
 
     try:

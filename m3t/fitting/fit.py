@@ -11,12 +11,16 @@
 :func:`fit_tracks` fits several clips of one signer in one batch: their frames are packed along the batch
 axis, each clip has its own camera and its own terms (the acceleration never spans two clips), the objective
 is the sum of the clips' objectives, and the identity (the body shape) is one, shared by every clip: the
-paper's static per-signer shape. :func:`fit_track` is the one-clip case.
+paper's static per-signer shape (with ``lbfgs_lockstep``, one per clip unless given). :func:`fit_track` is the
+one-clip case.
 
-Two solvers (``fitting.solver``), both after a camera-only stage that places the body in the image using the
+Three solvers (``fitting.solver``), each after a camera-only stage that places the body in the image using the
 torso and head points:
 
 - ``lbfgs`` (default): L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
+- ``lbfgs_lockstep``: one L-BFGS per clip (its own history, step length, convergence test and identity), the
+  batch's clips in lock-step so that one objective evaluation serves them all (:mod:`m3t.fitting.lockstep`):
+  a batch then fits each clip as well as its own fit would (one L-BFGS over a batch does not);
 - ``adam``: the first solver, a fixed number of Adam steps with a cosine learning-rate decay.
 
 The body root stays at the origin; the camera's extrinsics carry the global placement. Only the sparse
@@ -35,6 +39,7 @@ from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import look_at, project
 from m3t.fitting.config import FittingConfig
+from m3t.fitting.lockstep import minimise_rows
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
 
@@ -261,36 +266,59 @@ def fit_tracks(
     init = {k: torch.cat([one[k] for one in inits]).to(device) for k in layout.names}
     rot_streams = [m.name for m in layout.modalities if m.kind == "rotation6d"]
     scalar_streams = [m.name for m in layout.modalities if m.kind == "scalar"]
-    variables = {k: init[k].clone().requires_grad_(True) for k in rot_streams}
-    # Bounded streams (Anny's facial actions and phenotypes live in [0, 1]) are optimised directly, enter the
-    # objective clamped and are projected back after each step or round (a sigmoid would freeze parameters
-    # that start at 0).
-    variables.update({k: init[k].clone().requires_grad_(True) for k in scalar_streams})
+    # Every optimised tensor, by name; the objective reads them from here (the lock-step solver swaps in views
+    # of its flat vector while it runs). Bounded streams (Anny's facial actions and phenotypes live in [0, 1]) are
+    # optimised directly, enter the objective clamped and are projected back after each step or round (a
+    # sigmoid would freeze parameters that start at 0).
+    opt = {k: init[k].clone().requires_grad_(True) for k in [*rot_streams, *scalar_streams]}
     known = identity is not None
     identity0 = body.default_identity().to(device)
     if known:
         identity0 = torch.as_tensor(identity, dtype=identity0.dtype, device=device)
-    identity = identity0.clone().requires_grad_(cfg.fit_identity and not known)
+    # lbfgs_lockstep fits every clip on its own (its own identity too, unless the signer's is given)
+    lockstep = cfg.solver == "lbfgs_lockstep"
+    per_clip_identity = lockstep and not known
+    shape = {"identity_index": pack.clip} if per_clip_identity else {}
+    opt["identity"] = (identity0.expand(len(tracks), -1) if per_clip_identity else identity0).clone() \
+        .requires_grad_(cfg.fit_identity and not known)
 
     rot0, trans0 = _init_extrinsics(body, identity0.cpu(), cfg)
-    cam_rot = matrix_to_6d(rot0).to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 6)
-    cam_trans = trans0.to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 3)
+    opt["cam_rot"] = matrix_to_6d(rot0).to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 6)
+    opt["cam_trans"] = trans0.to(device).repeat(len(tracks), 1).requires_grad_(True)  # (C, 3)
     frame_intrinsics = intrinsics[pack.clip]
 
     def current_params() -> dict[str, torch.Tensor]:
-        out = {k: variables[k] for k in rot_streams}
-        out.update({k: variables[k].clamp(*layout[k].bounds) if layout[k].bounds is not None else variables[k]
+        out = {k: opt[k] for k in rot_streams}
+        out.update({k: opt[k].clamp(*layout[k].bounds) if layout[k].bounds is not None else opt[k]
                     for k in scalar_streams})
         return out
 
+    def current_identity() -> torch.Tensor:
+        ident = opt["identity"]
+        return ident if layout.identity_bounds is None else ident.clamp(*layout.identity_bounds)
+
     def uv_of(points: torch.Tensor) -> torch.Tensor:
-        return project(points, sixd_to_matrix(cam_rot)[pack.clip], cam_trans[pack.clip], frame_intrinsics)
+        return project(points, sixd_to_matrix(opt["cam_rot"])[pack.clip], opt["cam_trans"][pack.clip],
+                       frame_intrinsics)
 
     def keypoints_uv(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        ident = identity if layout.identity_bounds is None else identity.clamp(*layout.identity_bounds)
-        points = body.forward_keypoints(params, ident, kpset)  # (B, K, 3)
+        points = body.forward_keypoints(params, current_identity(), kpset, **shape)  # (B, K, 3)
         return points, uv_of(points)
 
+    def solve(loss_per_clip, names: list[str], stage: str, lr: float, curve: list[float],
+              project_bounds=None) -> None:
+        """Minimise the clips' summed objective over ``opt[names]``; lbfgs_lockstep: each clip its own."""
+        if not lockstep:
+            _minimise(lambda: loss_per_clip().sum(), [opt[k] for k in names], cfg, stage, lr, curve, project_bounds)
+            return
+        per_clip = [k for k in names if k in ("identity", "cam_rot", "cam_trans")]
+        curves = minimise_rows(opt, [k for k in names if k not in per_clip], per_clip, pack.clip, loss_per_clip,
+                               cfg.camera_iterations if stage == "camera" else cfg.iterations, cfg.lbfgs_round,
+                               cfg.tolerance, cfg.lbfgs_history, project_bounds)
+        if stage == "full":
+            clip_curves.extend(curves)
+
+    clip_curves: list[list[float]] = []  # lbfgs_lockstep: each clip's own curve of the full stage
     curve: list[float] = []
     # Stage 1: camera only, against the torso and head (arms and hands are far from the rest pose).
     torso_conf = torch.zeros_like(conf)
@@ -299,28 +327,28 @@ def fit_tracks(
     if float(torso_conf.sum()) > 0:
         torso = _Terms(pack, torso_conf, [parts[0]], valid)
         with torch.no_grad():
-            rest_points = body.forward_keypoints(current_params(), identity, kpset)
-        _minimise(lambda: torso.reprojection(uv_of(rest_points), target).sum(), [cam_rot, cam_trans], cfg, "camera",
-                  cfg.lr * 2, [])
+            rest_points = body.forward_keypoints(current_params(), current_identity(), kpset, **shape)
+        solve(lambda: torso.reprojection(uv_of(rest_points), target), ["cam_rot", "cam_trans"], "camera",
+              cfg.lr * 2, [])
 
     # Stage 2: everything, with the full objective (the sum of the clips' objectives).
     def bounded() -> None:
         with torch.no_grad():
             for k in scalar_streams:
                 if layout[k].bounds is not None:
-                    variables[k].clamp_(*layout[k].bounds)
+                    opt[k].clamp_(*layout[k].bounds)
             if layout.identity_bounds is not None:
-                identity.clamp_(*layout.identity_bounds)
+                opt["identity"].clamp_(*layout.identity_bounds)
 
     def full_loss() -> torch.Tensor:
         params = current_params()
         points, uv = keypoints_uv(params)
-        per_clip = (cfg.w_kp * terms.reprojection(uv, target) + cfg.w_acc * terms.acceleration(points)
-                    + cfg.w_reg * terms.regulariser(params, init))
-        return per_clip.sum()
+        return (cfg.w_kp * terms.reprojection(uv, target) + cfg.w_acc * terms.acceleration(points)
+                + cfg.w_reg * terms.regulariser(params, init))
 
-    _minimise(full_loss, [*variables.values(), *([identity] if identity.requires_grad else []), cam_rot, cam_trans], cfg,
-              "full", cfg.lr, curve, project_bounds=bounded)
+    names = [*rot_streams, *scalar_streams, *(["identity"] if opt["identity"].requires_grad else []),
+             "cam_rot", "cam_trans"]
+    solve(full_loss, names, "full", cfg.lr, curve, project_bounds=bounded)
 
     with torch.no_grad():
         params = current_params()
@@ -328,18 +356,20 @@ def fit_tracks(
                       if k in rot_streams else v) for k, v in params.items()}  # store orthonormal 6D
         _, uv = keypoints_uv(params)
         err_all = torch.linalg.norm(uv - target, dim=-1)
-        rotations = sixd_to_matrix(cam_rot)
-        ident = identity.detach().cpu().numpy().astype(np.float32)
+        rotations = sixd_to_matrix(opt["cam_rot"])
+        ident = opt["identity"].detach().cpu().numpy().astype(np.float32)
         results = []
         for c, (track, sl) in enumerate(zip(tracks, pack.slices)):
             err = err_all[sl][conf[sl] > 0]
+            own_curve = clip_curves[c] if clip_curves else curve
             metrics = {"reproj_px": float(err.mean()), "reproj_px_p95": float(torch.quantile(err, 0.95)),
-                       "final_loss": curve[-1] if curve else float("nan")}
+                       "final_loss": own_curve[-1] if own_curve else float("nan")}
             fx, fy, cx, cy = (float(v) for v in intrinsics[c].cpu())
             camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "rotation": rotations[c].cpu().tolist(),
-                      "translation": cam_trans[c].cpu().tolist(),
+                      "translation": opt["cam_trans"][c].cpu().tolist(),
                       "width": track.image_size[0], "height": track.image_size[1]}
             results.append(FitResult(
                 params={k: v[sl].detach().cpu().numpy().astype(np.float32) for k, v in params.items()},
-                identity=ident, camera=camera, metrics=metrics, loss_curve=list(curve)))
+                identity=ident[c] if per_clip_identity else ident, camera=camera, metrics=metrics,
+                loss_curve=list(own_curve)))
     return results
