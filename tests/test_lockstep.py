@@ -132,3 +132,23 @@ def test_fit_tracks_lockstep_fits_as_well_as_per_clip_lbfgs(body, clips):
     lockstep = fit_tracks(clips, body, dataclasses.replace(lbfgs, solver="lbfgs_lockstep"))
     for a, b in zip(per_clip, lockstep):
         assert b.metrics["reproj_px"] <= 1.1 * a.metrics["reproj_px"] + 0.05
+
+
+@pytest.mark.parametrize("model", ["anny", "smplfx"])
+def test_an_identity_per_clip_equals_the_identities_per_frame(model, request):
+    """``identity_index`` (one identity per clip, each frame's row) gives what per-frame identities give."""
+    from m3t.body.protocol import Correspondence
+    from test_body import random_params
+
+    body = request.getfixturevalue("body" if model == "anny" else "fx")
+    params = random_params(body, 5, seed=4)
+    g = torch.Generator().manual_seed(2)
+    identities = torch.rand(2, body.layout.identity_dim, generator=g) if model == "anny" \
+        else 0.5 * torch.randn(2, body.layout.identity_dim, generator=g)
+    index = torch.tensor([0, 0, 1, 1, 1])
+    corr = Correspondence(("a", "b", "c"), np.array([0, 0, 1]), np.array([0, 5000, 3]))
+    kp = body.keypoint_set(corr)
+    per_clip = body.forward_keypoints(params, identities, kp, identity_index=index)
+    per_frame = body.forward_keypoints(params, identities[index], kp)
+    assert torch.allclose(per_clip, per_frame, atol=1e-6)
+    assert not torch.allclose(per_clip[1], body.forward_keypoints(params, identities[1], kp)[1], atol=1e-4)
