@@ -12,11 +12,11 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from test_fitting import front_camera, smooth_motion
 
 from m3t.fitting.fit import FittingConfig, fit_tracks
 from m3t.fitting.lockstep import LockstepLBFGS
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
-from test_fitting import front_camera, smooth_motion
 
 # Rosenbrock problems of very different scales: one shared step length would suit none of them.
 SCALES = [1.0, 30.0, 0.05]
@@ -26,10 +26,8 @@ ROWS = [3, 5, 2]  # rows of the row block per problem (two values each), plus on
 def rosenbrock_batch(which: list[int]) -> tuple[torch.Tensor, torch.Tensor, int, callable]:
     """The problems ``which`` of SCALES in one flat tensor: [rows x 2 | one value per problem]."""
     owner = torch.cat([torch.full((ROWS[p],), i) for i, p in enumerate(which)])
-    g = torch.Generator().manual_seed(0)
     start = {p: (torch.rand(ROWS[p], 2, generator=torch.Generator().manual_seed(p)) * 2 - 1,
                  torch.rand(1, generator=torch.Generator().manual_seed(10 + p))) for p in range(len(SCALES))}
-    del g
     x = torch.cat([torch.cat([start[p][0] for p in which]).reshape(-1), torch.cat([start[p][1] for p in which])])
     x.requires_grad_(True)
     scales = torch.tensor([SCALES[p] for p in which])
@@ -80,8 +78,7 @@ def test_accepted_points_never_increase_a_problems_loss():
     solver = LockstepLBFGS(x, owner, 2, n, 100)
     solver.minimise(loss, 80, 25, 0.0)
     final = loss().detach()
-    x2, owner2, _, loss2 = rosenbrock_batch([0, 1, 2])
-    initial = loss2().detach()
+    initial = rosenbrock_batch([0, 1, 2])[3]().detach()
     assert bool((final <= initial).all())
 
 
@@ -137,8 +134,9 @@ def test_fit_tracks_lockstep_fits_as_well_as_per_clip_lbfgs(body, clips):
 @pytest.mark.parametrize("model", ["anny", "smplfx"])
 def test_an_identity_per_clip_equals_the_identities_per_frame(model, request):
     """``identity_index`` (one identity per clip, each frame's row) gives what per-frame identities give."""
-    from m3t.body.protocol import Correspondence
     from test_body import random_params
+
+    from m3t.body.protocol import Correspondence
 
     body = request.getfixturevalue("body" if model == "anny" else "fx")
     params = random_params(body, 5, seed=4)
