@@ -68,9 +68,13 @@ class LockstepLBFGS:
                       out=out[:self.split].view(-1, self.width))
         return out
 
-    def mask(self, keep: torch.Tensor, a: torch.Tensor, other: torch.Tensor | float) -> torch.Tensor:
-        """``a`` where the problem's ``keep`` (C,) holds, else ``other``."""
-        return torch.where(self.scaled(keep.to(a.dtype), torch.ones_like(a)) > 0, a, other)
+    def elements(self, keep: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: every element of the problems where ``keep`` (C,) holds."""
+        out = torch.empty(self.x.shape[0], dtype=torch.bool, device=self.x.device)
+        out[self.split:].view(self.n, -1).copy_(keep[:, None].expand(self.n, out[self.split:].numel() // self.n))
+        if self.split:
+            out[:self.split].view(-1, self.width).copy_(keep[self.row_owner][:, None].expand(-1, self.width))
+        return out
 
     def direction(self, g: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
         """-H g by the two-loop recursion over the aligned history, ``gamma`` (C,) scaling the initial H."""
@@ -127,7 +131,8 @@ class LockstepLBFGS:
             stepped = active & torch.isfinite(f_new) & (f_new <= f + ARMIJO * t * gd)
             # the accepted pairs; rho 0 for every other problem keeps the histories aligned
             s = self.scaled(torch.where(stepped, t, zero), d)
-            y = self.mask(stepped, g_new - g, 0.0)
+            moved = self.elements(stepped)  # the elements of the problems that stepped
+            y = torch.where(moved, g_new - g, 0.0)
             sy, yy, ss = self.dot(s, y), self.dot(y, y), self.dot(s, s)
             good = stepped & (sy > CURVATURE_FLOOR * (ss * yy).sqrt())
             if bool(good.any()):
@@ -136,9 +141,9 @@ class LockstepLBFGS:
                 if len(self.slots) > self.history:
                     self.slots.pop(0)
                 gamma = torch.where(good, sy / torch.where(good, yy, torch.ones_like(yy)), gamma)
-            x0 = self.mask(stepped, x.detach(), x0)
+            x0 = torch.where(moved, x.detach(), x0)
             f = torch.where(stepped, f_new, f)
-            g = self.mask(stepped, g_new, g)
+            g = torch.where(moved, g_new, g)
             if since_round >= round_length and used < evaluations:
                 since_round = 0
                 if project is not None:
@@ -155,7 +160,7 @@ class LockstepLBFGS:
                 new_d = self.direction(g, gamma)
                 descent = self.dot(g, new_d) < 0
                 steep, first = restart(g)
-                new_d = self.mask(descent, new_d, steep)
+                new_d = torch.where(self.elements(descent), new_d, steep)
                 new_t = torch.where(descent, torch.ones_like(t), first)
             else:  # every active problem backtracks: no direction changes
                 new_d, new_t = d, t
@@ -165,7 +170,7 @@ class LockstepLBFGS:
                                                                              torch.ones_like(denominator)), 0.5 * t)
             shorter = torch.minimum(torch.maximum(quadratic, 0.1 * t), 0.5 * t)
             shorter = torch.where(torch.isfinite(shorter), shorter, 0.1 * t)
-            d = self.mask(stepped, new_d, d)
+            d = torch.where(moved, new_d, d)
             t = torch.where(stepped, new_t, shorter)
         with torch.no_grad():
             x.copy_(x0)
