@@ -229,6 +229,38 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
     assert result["tokens"]["synthetic"]["rejected"] == 0
 
 
+def test_groups_trained_in_worker_processes_equal_one_process_on_their_threads(shards_dir, tmp_path, body):
+    """``group_workers: 2`` trains the three groups in two spawned processes of one thread each (this process has
+    two): checkpoints, metrics.json, the per-epoch records and the plots' counts are those of one process that
+    trains the groups one after another on one thread."""
+    from m3t.tokenizers.pipeline import group_workers, run_train_tokenizers
+
+    params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
+        "body": {"cache_dir": str(ROOT / ".cache" / "anny")}, "data": {"shards_root": str(shards_dir.parent)}})
+    runs = {}
+    for workers, threads in ((1, 1), (2, 2)):
+        torch.set_num_threads(threads)  # conftest restores the count
+        root = tmp_path / f"workers{workers}"
+        cfg = tiny_cfg(root, epochs=3, eval_every=2, group_workers=workers)
+        assert group_workers(cfg, DistributedContext()) == ((1, 0) if workers == 1 else (2, 1))
+        data = dataclasses.replace(params.data, models_dir=str(root / "models"))
+        records = []
+        report = run_train_tokenizers(TINY_MODEL, cfg, body, data, progress=False, body_cfg=params.body,
+                                      on_epoch=lambda group, record, epoch, out=records: out.append((group, epoch, record)))
+        runs[workers] = (report, records, data.tokenizers_dir)
+    (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
+    assert set(one) == {"body", "hand", "face"} and one == two
+    assert sorted(one_records, key=str) == sorted(two_records, key=str) and len(one_records) == 9
+    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    for group in one:
+        a, b = (torch.load(d / f"{group}.pt", weights_only=False)["state_dict"] for d in (one_dir, two_dir))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), group
+        assert (one_dir / "plots" / f"tokens_{group}.json").read_bytes() == \
+            (two_dir / "plots" / f"tokens_{group}.json").read_bytes()
+    with pytest.raises(ValueError, match="body_cfg"):  # a worker has to load the body model itself
+        run_train_tokenizers(TINY_MODEL, cfg, body, data, progress=False)
+
+
 def test_run_key_changes_with_the_training_settings_not_with_where_or_on_what_device():
     """The key names the resumable checkpoint: a changed setting (learning rate, epochs, batch) must start a new
     run, not resume a stale one; the cache folder and the device must not."""
@@ -237,7 +269,8 @@ def test_run_key_changes_with_the_training_settings_not_with_where_or_on_what_de
     model = TINY_MODEL.vae_config("body", 12)
     cfg = TokenizerTrainConfig()
     key = run_key("body", model, cfg, "v1")
-    assert key == run_key("body", model, dataclasses.replace(cfg, cache_dir="elsewhere", device="cuda"), "v1")
+    assert key == run_key("body", model, dataclasses.replace(cfg, cache_dir="elsewhere", device="cuda",
+                                                             group_workers=3), "v1")
     for change in ({"lr": cfg.lr * 2}, {"epochs": cfg.epochs + 1}, {"batch_size": cfg.batch_size * 2}):
         assert key != run_key("body", model, dataclasses.replace(cfg, **change), "v1"), change
     assert key != run_key("body", model, cfg, "v2") != run_key("hand", model, cfg, "v1")

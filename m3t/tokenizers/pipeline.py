@@ -12,6 +12,7 @@ M3T reports them (Tab. 3, Tab. A.2, Fig. A.3 "across all test sets"; the same ov
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -23,7 +24,7 @@ from m3t.body.protocol import BodyModel
 from m3t.corpora.base import SPLITS
 from m3t.experiment import ExperimentConfig, section_params
 from m3t.metrics.codebook import codebook_stats, plot_token_histogram, token_counts
-from m3t.runtime import DistributedContext
+from m3t.runtime import DistributedContext, choose_device
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_shard, read_split
 from m3t.shards.schema import FittedClip
@@ -36,7 +37,7 @@ from m3t.tokenizers.data import (
     to_canonical,
 )
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
-from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
+from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.train import TrainResult, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
 
@@ -99,6 +100,65 @@ def group_report(group: str, checkpoint: Path, splits: dict[str, list[FittedClip
     return report
 
 
+@dataclass
+class _GroupJob:
+    """One group's training and report: what a worker process needs besides the body model."""
+
+    group: str
+    model_cfg: VAEConfig
+    sequences: list[np.ndarray]
+    usable: dict[str, list[FittedClip]]  # the splits without the clips rejected so far
+    version: str
+    out_dir: Path
+
+
+def _train_group(job: _GroupJob, cfg: TokenizerTrainConfig, body: BodyModel | None,
+                 on_epoch: Callable[[dict[str, float], int], None] | None, stop_after_epochs: int | None,
+                 dist_ctx: DistributedContext, progress: bool) -> tuple[TrainResult, dict[str, float] | None]:
+    """Train one group and, on rank 0, copy its selected checkpoint out and measure it (``group_report``)."""
+    dev = job.usable["dev"]
+    probe = ReconstructionProbe(body, job.group, dev or job.usable["train"], cfg.val_max_frames) \
+        if dist_ctx.is_main else None
+    result = train_tokenizer(job.group, job.model_cfg, cfg, job.sequences, probe, job.version, on_epoch,
+                             stop_after_epochs, dist_ctx, progress)
+    if not dist_ctx.is_main:
+        return result, None
+    checkpoint = copy_file(result.best_path, job.out_dir / f"{job.group}.pt")
+    report = {**group_report(job.group, checkpoint, job.usable, body, job.out_dir / "plots", cfg.val_max_frames),
+              "best_epoch": float(result.best.get("epoch", 0)),
+              **{f"best_{k}": v for k, v in result.best.items() if k.startswith("val_")}}
+    return result, report
+
+
+def _group_worker(job: _GroupJob, cfg: TokenizerTrainConfig, body_cfg: BodyConfig, threads: int,
+                  stop_after_epochs: int | None, progress: bool
+                  ) -> tuple[TrainResult, dict[str, float], list[tuple[dict[str, float], int]]]:
+    """A worker process of ``tokenizer_train.group_workers``: its own body model and thread count; the epoch
+    records come back with the result (the parent logs them)."""
+    import torch
+
+    from m3t.body.factory import load_body_model
+
+    torch.set_num_threads(threads)
+    records: list[tuple[dict[str, float], int]] = []
+    result, report = _train_group(job, cfg, load_body_model(body_cfg), lambda r, e: records.append((dict(r), e)),
+                                  stop_after_epochs, DistributedContext(), progress)
+    result.model = None  # the parent needs the paths and the history, not a second copy of the weights
+    return result, report, records
+
+
+def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tuple[int, int]:
+    """(worker processes, threads each) for the group runs: ``cfg.group_workers`` processes (at most one per group)
+    sharing this process's threads, or (1, 0) for one group after another in this process. Only on the CPU and
+    without DDP: on a GPU one process already keeps the device busy."""
+    import torch
+
+    workers = min(cfg.group_workers, len(cfg.groups))
+    if workers <= 1 or dist_ctx.world_size > 1 or choose_device(cfg.device).type != "cpu":
+        return 1, 0
+    return workers, max(1, torch.get_num_threads() // workers)
+
+
 def run_train_tokenizers(
     tok_cfg: TokenizerConfig,
     cfg: TokenizerTrainConfig,
@@ -108,8 +168,15 @@ def run_train_tokenizers(
     stop_after_epochs: int | None = None,
     dist_ctx: DistributedContext | None = None,
     progress: bool = True,
+    body_cfg: BodyConfig | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Train every configured group; returns (and, on rank 0, writes) ``metrics.json``'s content."""
+    """Train every configured group; returns (and, on rank 0, writes) ``metrics.json``'s content.
+
+    With ``tokenizer_train.group_workers`` > 1 (CPU, no DDP) the groups train in that many processes at once,
+    each loading the body model of ``body_cfg`` and running on its share of this process's threads. A group's
+    results are those of one process training it on that many threads, whatever runs beside it; they differ in
+    float order from a run on all the threads.
+    """
     dist_ctx = dist_ctx or DistributedContext()
     splits = {split: read_split(data.shards_dirs, split) for split in SPLITS}
     if not splits["train"]:
@@ -119,26 +186,43 @@ def run_train_tokenizers(
     version = data_version([d / f"{s}.parquet" for d in data.shards_dirs for s in ("train", "dev")]
                            + list(map(Path, cfg.extra_face_shards)))
     out_dir = data.tokenizers_dir
-    plots = out_dir / "plots"
     rejected: list[dict] = []
-    results: dict[str, TrainResult] = {}
-    report: dict[str, dict[str, float]] = {}
-    for group in cfg.groups:
+    jobs = []
+    for group in cfg.groups:  # a group's report leaves out the clips this group and the ones before it rejected
         input_dim = check_layout(layout, group)
         train_clips = splits["train"] + (face_only_clips(cfg.extra_face_shards) if group == "face" else [])
         sequences = usable_sequences(group, train_clips, rejected)
         rejected_ids = {r["clip_id"] for r in rejected}
         usable = {s: [c for c in clips if c.clip.id not in rejected_ids] for s, clips in splits.items()}
-        dev = usable["dev"]
-        probe = ReconstructionProbe(body, group, dev or splits["train"], cfg.val_max_frames) if dist_ctx.is_main else None
-        callback = (lambda record, epoch, g=group: on_epoch(g, record, epoch)) if on_epoch else None
-        results[group] = train_tokenizer(group, tok_cfg.vae_config(group, input_dim), cfg, sequences, probe, version,
-                                         callback, stop_after_epochs, dist_ctx, progress)
-        if dist_ctx.is_main:
-            copy_file(results[group].best_path, out_dir / f"{group}.pt")
-            report[group] = {**group_report(group, out_dir / f"{group}.pt", usable, body, plots, cfg.val_max_frames),
-                             "best_epoch": float(results[group].best.get("epoch", 0)),
-                             **{f"best_{k}": v for k, v in results[group].best.items() if k.startswith("val_")}}
+        jobs.append(_GroupJob(group, tok_cfg.vae_config(group, input_dim), sequences, usable, version, out_dir))
+    workers, threads = group_workers(cfg, dist_ctx)
+    report: dict[str, dict[str, float]] = {}
+    if workers > 1:
+        if body_cfg is None:
+            raise ValueError("tokenizer_train.group_workers > 1 needs the body config (body_cfg) for its worker "
+                             "processes to load the body model; pass it, or set group_workers: 1")
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures.process import BrokenProcessPool
+
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_group_worker, job, cfg, body_cfg, threads, stop_after_epochs, progress)
+                       for job in jobs]
+            for job, future in zip(jobs, futures):
+                try:
+                    _, report[job.group], records = future.result()
+                except BrokenProcessPool as exc:  # killed (out of memory, a signal): finished epochs are saved
+                    raise RuntimeError(f"the worker process training tokenizer group {job.group!r} died ({exc}); "
+                                       "rerun to resume from the last saved epoch, or set "
+                                       "tokenizer_train.group_workers: 1 to train in this process") from exc
+                for record, epoch in records if on_epoch else ():
+                    on_epoch(job.group, record, epoch)
+    else:
+        for job in jobs:
+            callback = (lambda record, epoch, g=job.group: on_epoch(g, record, epoch)) if on_epoch else None
+            _, group_metrics = _train_group(job, cfg, body, callback, stop_after_epochs, dist_ctx, progress)
+            if group_metrics is not None:
+                report[job.group] = group_metrics
     if dist_ctx.is_main:
         write_json(out_dir / "metrics.json", report)
         write_jsonl(out_dir / "rejected.jsonl", rejected)
@@ -155,14 +239,14 @@ def train_and_log(tok_cfg: TokenizerConfig, cfg: TokenizerTrainConfig, body_cfg:
     dist_ctx = distributed_context(cfg.device)
     body = load_body_model(body_cfg)
     if not dist_ctx.is_main:
-        return run_train_tokenizers(tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False)
+        return run_train_tokenizers(tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False, body_cfg=body_cfg)
     tags = {"quantizer": tok_cfg.quantizer, "width": str(tok_cfg.width), "batch_size": str(cfg.batch_size),
             "body_model": body_cfg.model, "corpus": ",".join(data.train_corpora), "seed": str(cfg.seed)}
     variant = f"{tok_cfg.quantizer.upper()} width {tok_cfg.width} batch {cfg.batch_size}"
     with start_run(experiment, "train-tokenizers", tags=tags, variant=variant) as run:
         run.log_params(section_params(body=body_cfg, tokenizer=tok_cfg, tokenizer_train=cfg, data=data))
         report = run_train_tokenizers(
-            tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=progress,
+            tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=progress, body_cfg=body_cfg,
             on_epoch=lambda group, record, epoch: run.log_metrics({f"{group}/{k}": v for k, v in record.items()}, step=epoch))
         run.log_metrics({f"{group}/{k}": v for group, values in report.items() for k, v in values.items()})
         out_dir = data.tokenizers_dir

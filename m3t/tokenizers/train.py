@@ -70,7 +70,9 @@ def train_step(model: torch.nn.Module, batch: tuple[torch.Tensor, torch.Tensor],
 
 
 def run_key(group: str, model_cfg: VAEConfig, cfg: TokenizerTrainConfig, data_version: str) -> str:
-    relevant = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("out_dir", "cache_dir", "device")}
+    # where and how it runs (device, processes) does not name the run: a checkpoint resumes on any of them
+    where = ("out_dir", "cache_dir", "device", "group_workers")
+    relevant = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in where}
     return run_digest(TRAIN_VERSION, group, dataclasses.asdict(model_cfg), relevant, data_version)
 
 
