@@ -259,6 +259,8 @@ def test_groups_trained_in_worker_processes_equal_one_process_on_their_threads(s
             (two_dir / "plots" / f"tokens_{group}.json").read_bytes()
     with pytest.raises(ValueError, match="body_cfg"):  # a worker has to load the body model itself
         run_train_tokenizers(TINY_MODEL, cfg, body, data, progress=False)
+    with pytest.raises(ValueError, match="pass the body model"):  # only workers load their own
+        run_train_tokenizers(TINY_MODEL, dataclasses.replace(cfg, group_workers=1), None, data, progress=False)
 
 
 def test_run_key_changes_with_the_training_settings_not_with_where_or_on_what_device():

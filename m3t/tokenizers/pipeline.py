@@ -38,7 +38,7 @@ from m3t.tokenizers.data import (
 )
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig, VAEConfig
-from m3t.tokenizers.train import TrainResult, train_tokenizer
+from m3t.tokenizers.train import train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
 
 
@@ -112,39 +112,39 @@ class _GroupJob:
     out_dir: Path
 
 
-def _train_group(job: _GroupJob, cfg: TokenizerTrainConfig, body: BodyModel | None,
+def _train_group(job: _GroupJob, cfg: TokenizerTrainConfig, body: BodyModel,
                  on_epoch: Callable[[dict[str, float], int], None] | None, stop_after_epochs: int | None,
-                 dist_ctx: DistributedContext, progress: bool) -> tuple[TrainResult, dict[str, float] | None]:
-    """Train one group and, on rank 0, copy its selected checkpoint out and measure it (``group_report``)."""
+                 dist_ctx: DistributedContext, progress: bool) -> dict[str, float] | None:
+    """Train one group and, on rank 0, copy its selected checkpoint out and return its report (``group_report``
+    + the selected epoch's validation figures); other ranks return None."""
     dev = job.usable["dev"]
     probe = ReconstructionProbe(body, job.group, dev or job.usable["train"], cfg.val_max_frames) \
         if dist_ctx.is_main else None
     result = train_tokenizer(job.group, job.model_cfg, cfg, job.sequences, probe, job.version, on_epoch,
                              stop_after_epochs, dist_ctx, progress)
     if not dist_ctx.is_main:
-        return result, None
+        return None
     checkpoint = copy_file(result.best_path, job.out_dir / f"{job.group}.pt")
     report = {**group_report(job.group, checkpoint, job.usable, body, job.out_dir / "plots", cfg.val_max_frames),
               "best_epoch": float(result.best.get("epoch", 0)),
               **{f"best_{k}": v for k, v in result.best.items() if k.startswith("val_")}}
-    return result, report
+    return report
 
 
 def _group_worker(job: _GroupJob, cfg: TokenizerTrainConfig, body_cfg: BodyConfig, threads: int,
                   stop_after_epochs: int | None, progress: bool
-                  ) -> tuple[TrainResult, dict[str, float], list[tuple[dict[str, float], int]]]:
+                  ) -> tuple[dict[str, float], list[tuple[dict[str, float], int]]]:
     """A worker process of ``tokenizer_train.group_workers``: its own body model and thread count; the epoch
-    records come back with the result (the parent logs them)."""
+    records come back with the report (the parent logs them)."""
     import torch
 
     from m3t.body.factory import load_body_model
 
     torch.set_num_threads(threads)
     records: list[tuple[dict[str, float], int]] = []
-    result, report = _train_group(job, cfg, load_body_model(body_cfg), lambda r, e: records.append((dict(r), e)),
-                                  stop_after_epochs, DistributedContext(), progress)
-    result.model = None  # the parent needs the paths and the history, not a second copy of the weights
-    return result, report, records
+    report = _train_group(job, cfg, load_body_model(body_cfg), lambda r, e: records.append((dict(r), e)),
+                          stop_after_epochs, DistributedContext(), progress)
+    return report, records
 
 
 def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tuple[int, int]:
@@ -162,7 +162,7 @@ def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tu
 def run_train_tokenizers(
     tok_cfg: TokenizerConfig,
     cfg: TokenizerTrainConfig,
-    body: BodyModel,
+    body: BodyModel | None,
     data: DataConfig,
     on_epoch: Callable[[str, dict[str, float], int], None] | None = None,
     stop_after_epochs: int | None = None,
@@ -173,7 +173,8 @@ def run_train_tokenizers(
     """Train every configured group; returns (and, on rank 0, writes) ``metrics.json``'s content.
 
     With ``tokenizer_train.group_workers`` > 1 (CPU, no DDP) the groups train in that many processes at once,
-    each loading the body model of ``body_cfg`` and running on its share of this process's threads. A group's
+    each loading the body model of ``body_cfg`` and running on its share of this process's threads (``body`` is
+    then unused and may be None). A group's
     results are those of one process training it on that many threads, whatever runs beside it; they differ in
     float order from a run on all the threads.
     """
@@ -210,7 +211,7 @@ def run_train_tokenizers(
                        for job in jobs]
             for job, future in zip(jobs, futures):
                 try:
-                    _, report[job.group], records = future.result()
+                    report[job.group], records = future.result()
                 except BrokenProcessPool as exc:  # killed (out of memory, a signal): finished epochs are saved
                     raise RuntimeError(f"the worker process training tokenizer group {job.group!r} died ({exc}); "
                                        "rerun to resume from the last saved epoch, or set "
@@ -218,9 +219,12 @@ def run_train_tokenizers(
                 for record, epoch in records if on_epoch else ():
                     on_epoch(job.group, record, epoch)
     else:
+        if body is None:
+            raise ValueError("the tokenizers train in this process (group_workers 1, a GPU or DDP): pass the body "
+                             "model")
         for job in jobs:
             callback = (lambda record, epoch, g=job.group: on_epoch(g, record, epoch)) if on_epoch else None
-            _, group_metrics = _train_group(job, cfg, body, callback, stop_after_epochs, dist_ctx, progress)
+            group_metrics = _train_group(job, cfg, body, callback, stop_after_epochs, dist_ctx, progress)
             if group_metrics is not None:
                 report[job.group] = group_metrics
     if dist_ctx.is_main:
@@ -237,7 +241,8 @@ def train_and_log(tok_cfg: TokenizerConfig, cfg: TokenizerTrainConfig, body_cfg:
     from m3t.runtime import distributed_context
 
     dist_ctx = distributed_context(cfg.device)
-    body = load_body_model(body_cfg)
+    # worker processes load their own body model: this one needs it only to train here
+    body = load_body_model(body_cfg) if group_workers(cfg, dist_ctx)[0] == 1 else None
     if not dist_ctx.is_main:
         return run_train_tokenizers(tok_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False, body_cfg=body_cfg)
     tags = {"quantizer": tok_cfg.quantizer, "width": str(tok_cfg.width), "batch_size": str(cfg.batch_size),
