@@ -30,6 +30,7 @@ import numpy as np
 import roma
 import torch
 
+from m3t.body.anny_targets import fast_target_reader
 from m3t.body.protocol import (
     BodyOutput,
     Correspondence,
@@ -62,7 +63,7 @@ _MODELS: dict[object, object] = {}
 
 
 def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch.dtype = torch.float32):
-    """Build (first time ~1 min, ~800 MB cache) or load the Anny model; one instance per process and
+    """Build (first time ~20 s, ~800 MB cache) or load the Anny model; one instance per process and
     (device, dtype), the others copied from the CPU float32 one. Callers never move a returned instance: it is
     shared by every :class:`AnnyBody` of the process on that device."""
     key = str(Path(cache_dir).resolve())
@@ -79,10 +80,12 @@ def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch
             # blendshape buffers on 2 threads than on 1 (entries up to 32 apart; three 1-thread builds, under
             # different hash seeds, were identical), and fits depended on which process built the cache (same
             # code and corpus: shard values up to 3e-3 apart).
+            # Its text targets read in one pass each (m3t.body.anny_targets: the same tensors, ~8x faster).
             threads = torch.get_num_threads()
             torch.set_num_threads(1)
             try:
-                model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref")
+                with fast_target_reader():
+                    model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref")
             finally:
                 torch.set_num_threads(threads)
             _MODELS[key] = model.to(torch.float32)
