@@ -13,6 +13,9 @@ with ``--threads`` torch threads, and is scored against the corpus' ground truth
   (:func:`m3t.fitting.fit.fit_tracks`), batches of at most ``--batch-frames`` frames;
 - ``new_lockstep``: the same batches, every clip its own L-BFGS and identity in lock-step
   (``fitting.solver: lbfgs_lockstep``, :mod:`m3t.fitting.lockstep`), one objective evaluation per batch;
+- ``new_batched``: the same batches, every clip fitted by exactly the default algorithm on its own (its own
+  ``torch.optim.LBFGS``, line searches, convergence test and identity), one objective evaluation per batch
+  (``fitting.solver: lbfgs_batched``, :func:`m3t.fitting.lbfgs.minimise_batched`);
 - ``new_budget``: the default solver per clip with a budget of ``--budget-iterations`` evaluations instead of
   ``fitting.iterations`` (the speed / accuracy trade-off of that one setting; 0 skips the arm).
 
@@ -30,7 +33,8 @@ the fastest arm whose errors are no worse than the CPU per-clip fits of the same
 machine (or those of an earlier result JSON, ``--gpu-reference``).
 
     python benchmarks/bench_fitting.py [--clips 12] [--threads 1] [--batch-frames 1024] [--budget-iterations 150]
-                                      [--arms old,new,new_signer_batch,new_lockstep,new_budget] [--device cuda]
+                                      [--arms old,new,new_signer_batch,new_lockstep,new_batched,new_budget]
+                                      [--device cuda]
                                       [--gpu-solvers lbfgs,lbfgs_lockstep]
                                       [--gpu-clips 0] [--gpu-batch-frames 2048,8192] [--gpu-iterations 100,200]
                                       [--gpu-workers 3] [--out benchmarks/results/fitting.json]
@@ -223,7 +227,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--iterations", type=int, default=0, help="the new solver's budget (0: params.yaml)")
     parser.add_argument("--budget-iterations", type=int, default=150, help="budget of the new_budget arm (0: none)")
-    parser.add_argument("--arms", default="old,new,new_signer_batch,new_lockstep,new_budget",
+    parser.add_argument("--arms", default="old,new,new_signer_batch,new_lockstep,new_batched,new_budget",
                         help="CPU arms to run (comma-separated; old is every ratio's baseline)")
     parser.add_argument("--gpu-clips", type=int, default=0, help="clips of the GPU sweep (0: the whole corpus)")
     parser.add_argument("--gpu-batch-frames", default="2048,8192", help="batch caps of the GPU sweep")
@@ -255,7 +259,8 @@ def main() -> None:
     tracks = [simulate_track(c.id, as_tensors(p), torch.as_tensor(i), cam, c.fps, new_body, params.tracker)
               for c, (p, i, cam) in zip(clips, truths)]
     frames = sum(t.num_frames for t in tracks)
-    new_cfg = dataclasses.replace(params.fitting, **({"iterations": args.iterations} if args.iterations else {}))
+    new_cfg = dataclasses.replace(params.fitting, solver="lbfgs",  # per clip; the batched arms set their own
+                                  **({"iterations": args.iterations} if args.iterations else {}))
     old_cfg = dataclasses.replace(new_cfg, solver="adam", iterations=200, camera_iterations=100)
     fit_track(tracks[0], new_body, dataclasses.replace(new_cfg, iterations=3))  # warm-up
 
@@ -278,6 +283,7 @@ def main() -> None:
             "new": lambda: [fit_track(t, new_body, new_cfg) for t in tracks],
             "new_signer_batch": lambda: batched(new_cfg),
             "new_lockstep": lambda: batched(dataclasses.replace(new_cfg, solver="lbfgs_lockstep")),
+            "new_batched": lambda: batched(dataclasses.replace(new_cfg, solver="lbfgs_batched")),
             "new_budget": lambda: [fit_track(t, new_body, budget_cfg) for t in tracks]}
     if not args.budget_iterations:
         wanted.discard("new_budget")

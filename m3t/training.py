@@ -18,6 +18,7 @@ import json
 import math
 import os
 import random
+import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -206,12 +207,17 @@ class TrainRun:
     resumed_from_epoch: int = 0
 
 
+LAST_EVERY_S = 30.0  # the resumable ``last`` checkpoint: at most this often, besides the end of a run (EpochTail)
+
+
 class EpochTail:
     """Everything after an epoch's batches. ``end_epoch`` adds ``epoch`` and ``lr`` to the epoch's training
     means; on rank 0 only it then runs ``evaluate()`` every ``eval_every`` epochs and after the last one
     (values logged as ``val_<name>``), saves ``best_path`` when the record is a new best by ``selection``,
-    appends the record to ``history``, saves ``last_path`` with :meth:`train_state` (when a path is given)
-    and calls ``on_epoch(record, epoch)``.
+    appends the record to ``history``, saves ``last_path`` with :meth:`train_state` (when a path is given:
+    after the last epoch of the run or of :meth:`remaining`'s range, and otherwise once ``last_every_s``
+    seconds have passed since the previous save, so that a run of short epochs does not spend its time writing
+    checkpoints; a killed run redoes at most that much) and calls ``on_epoch(record, epoch)``.
 
     Candidates for ``best`` are the evaluated epochs, or every epoch when there is no ``evaluate``.
     ``save(path, epoch, step, record, train_state)`` writes the trainer's own checkpoint; ``train_state``
@@ -223,7 +229,8 @@ class EpochTail:
                  save: Callable[[Path, int, int, dict[str, float], dict[str, Any] | None], Any],
                  best_path: str | os.PathLike, last_path: str | os.PathLike | None = None,
                  evaluate: Callable[[], dict[str, float]] | None = None, is_main: bool = True,
-                 on_epoch: Callable[[dict[str, float], int], None] | None = None):
+                 on_epoch: Callable[[dict[str, float], int], None] | None = None,
+                 last_every_s: float | None = None):
         self.epochs, self.eval_every, self.selection = epochs, eval_every, selection
         self.optim, self.scheduler, self.save, self.evaluate = optim, scheduler, save, evaluate
         self.best_path, self.last_path = Path(best_path), None if last_path is None else Path(last_path)
@@ -232,10 +239,14 @@ class EpochTail:
         self.history: list[dict[str, float]] = []
         self.best: dict[str, float] = {}
         self._lock = ExitStack()  # the run's lock beside its ``last`` checkpoint (resume_saved .. result)
+        self.last_every_s = LAST_EVERY_S if last_every_s is None else last_every_s
+        self._end = epochs  # the last epoch this call trains (remaining() may stop earlier)
+        self._last_saved = time.monotonic()
 
     def remaining(self, stop_after_epochs: int | None = None) -> range:
         """Epoch indices still to train (from a resumed epoch on), at most ``stop_after_epochs`` of them."""
         end = self.epochs if stop_after_epochs is None else min(self.epochs, self.epoch + stop_after_epochs)
+        self._end = end
         return range(self.epoch, end)
 
     def train_state(self) -> dict[str, Any]:
@@ -295,8 +306,10 @@ class EpochTail:
                 self.best_score, self.best = score, dict(record)
                 self.save(self.best_path, self.epoch, self.step, record, None)
         self.history.append(record)
-        if self.last_path is not None:
+        if self.last_path is not None and (self.epoch >= self._end
+                                           or time.monotonic() - self._last_saved >= self.last_every_s):
             self.save(self.last_path, self.epoch, self.step, record, self.train_state())
+            self._last_saved = time.monotonic()
         if bar is not None:
             bar.set_postfix({k.removeprefix("train_"): f"{v:.4g}" for k, v in record.items()
                              if k.startswith("train_") or k == self.selection.metric})

@@ -45,7 +45,7 @@ def test_schedule_without_warm_up_starts_at_the_full_lr_and_refuses_unknown_unit
 
 
 def make_tail(tmp_path, scores, mode="min", eval_every=1, epochs=None, evaluate=True, is_main=True,
-              selection=None):
+              selection=None, last_every_s=0.0):
     """A tail over a tiny model; ``evaluate`` returns the next of ``scores`` as ``val_score``."""
     model = torch.nn.Linear(2, 1)
     optim = torch.optim.Adam(model.parameters(), lr=0.1)
@@ -60,7 +60,7 @@ def make_tail(tmp_path, scores, mode="min", eval_every=1, epochs=None, evaluate=
     tail = EpochTail(epochs or len(scores), eval_every, selection, optim, scheduler, save,
                      tmp_path / "best.pt", tmp_path / "last.pt",
                      evaluate=(lambda: {"score": next(values)}) if evaluate else None, is_main=is_main,
-                     on_epoch=lambda record, epoch: logged.append(epoch))
+                     on_epoch=lambda record, epoch: logged.append(epoch), last_every_s=last_every_s)
     return tail, model, saved, logged
 
 
@@ -103,6 +103,23 @@ def test_other_ranks_neither_evaluate_nor_save_nor_log(tmp_path):
     tail, model, saved, logged = make_tail(tmp_path, [1.0, 2.0], is_main=False)
     run(tail, model, tail.remaining())
     assert saved == [] and logged == [] and tail.history == [] and tail.epoch == 2 and tail.step == 2
+
+
+def test_last_is_saved_at_most_every_last_every_s_and_always_where_the_run_or_its_range_ends(tmp_path, monkeypatch):
+    clock = iter(float(t) for t in range(0, 1000, 10))  # every monotonic() call: 10 s later
+    monkeypatch.setattr("m3t.training.time.monotonic", lambda: next(clock))
+    tail, model, saved, _ = make_tail(tmp_path, [1.0] * 8, last_every_s=25.0)
+    run(tail, model, tail.remaining(stop_after_epochs=6))
+    # built at t=0; epoch 1 ends at 10 s, 2 at 20 s, 3 at 30 s (saved, clock read again: 40 s), 4 at 50 s,
+    # 5 at 60 s, 6 at 70 s (saved: 30 s since 40 s), and the range ends at 6 anyway
+    assert [e for name, e in saved if name == "last.pt"] == [3, 6]
+    run(tail, model, tail.remaining())
+    assert [e for name, e in saved if name == "last.pt"][-1] == 8  # the end of the run: always
+    assert [e for name, e in saved if name == "best.pt"] == [1]  # best is not subject to the cadence
+
+    tail, model, saved, _ = make_tail(tmp_path / "every", [1.0] * 3, last_every_s=0.0)
+    run(tail, model, tail.remaining())
+    assert [e for name, e in saved if name == "last.pt"] == [1, 2, 3]
 
 
 def test_last_checkpoint_continues_the_same_run(tmp_path):

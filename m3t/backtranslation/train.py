@@ -6,9 +6,9 @@ greedily and scores it under definition "slt" (:mod:`m3t.metrics.text`; per char
 
 Selection ``val_selection`` = BLEU-4 + 1e-6 x ROUGE-L: BLEU-4, with ties broken by ROUGE-L (on a small dev split
 BLEU-4 is often 0 for many validations; the first of them would otherwise be kept). Without a dev split the last
-epoch is kept. A resumable ``last`` is written after every epoch through :class:`m3t.training.EpochTail`: a run
-killed part-way and started again with the same config, vocabulary and data continues the same loss curve
-(:func:`run_key` names it).
+epoch is kept. A resumable ``last`` is written (at most every 30 s and at the end) through
+:class:`m3t.training.EpochTail`: a run killed part-way and started again with the same config, vocabulary and data
+continues the same loss curve (:func:`run_key` names it).
 
 Axis legend: B batch, T frames, K text tokens, G gloss classes.
 """

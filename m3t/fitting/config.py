@@ -29,12 +29,19 @@ class FittingConfig:
     focal_guess: float = 1.2  # focal length in units of max(width, height) when the track has no intrinsics
     camera_distance: float = 2.5  # initial camera distance in metres, in front of the chest
     device: str = "cpu"
-    # lbfgs_lockstep: every clip of a batch its own L-BFGS (and identity), one objective evaluation for all
+    # lbfgs: L-BFGS per clip (one over a batch of fit_corpus.batch_clips, shared identity); lbfgs_batched: the
+    # same algorithm for every clip of a batch (its own identity), one objective evaluation for all
+    # (m3t.fitting.lbfgs); lbfgs_lockstep: a vectorised per-clip L-BFGS with backtracking, for GPU batches
     # (m3t.fitting.lockstep); adam: the first solver (it used 200 + 100 steps)
-    solver: Literal["lbfgs", "adam", "lbfgs_lockstep"] = "lbfgs"
+    solver: Literal["lbfgs", "adam", "lbfgs_batched", "lbfgs_lockstep"] = "lbfgs_batched"
     lbfgs_round: int = 25  # iterations between convergence tests
     lbfgs_history: int = 100
     tolerance: float = 1e-3  # stop once a round improved the loss by less than this (relative)
+
+    @property
+    def per_clip_problems(self) -> bool:
+        """Whether every clip of a batch is its own problem (own identity) rather than one problem over the batch."""
+        return self.solver in ("lbfgs_batched", "lbfgs_lockstep")
 
 
 @dataclass(frozen=True)
@@ -52,7 +59,9 @@ class FitCorpusConfig:
     cache_dir: str = ".cache/fit"  # tracks and per-clip fits, content-addressed (shared by every corpus)
     workers: int = 2  # processes of the local executor (1 = in this process), or of the LocalCluster of dask
     max_clips: int = 0  # 0 = every clip
-    batch_clips: int = 1  # > 1: a signer's clips fitted together with one identity, at most this many; 1 = per clip
+    # a signer's clips fitted together, at most this many (1 = one at a time): with lbfgs_batched each its own problem,
+    # with lbfgs one problem with one identity
+    batch_clips: int = 16
     batch_frames: int = 2048  # frames per fit at most; a batch's further chunks hold the identity of its first
     render_clips: int = 2  # fitted clips pictured in the MLflow run
     # where clips are fitted (m3t.fitting.cluster): local = `workers` processes here; dask = a Dask cluster, on

@@ -336,9 +336,9 @@ def _init_source(clip: Clip, outputs: TrackerOutputs | None) -> str:
 
 def fit_signer_batch(tracks: list[Track], ctx: FitContext) -> list[FitResult]:
     """One signer's tracks fitted with one identity: in chunks of at most ``fit_corpus.batch_frames`` frames,
-    the first chunk fitting the identity and the others holding it. With ``fitting.solver: lbfgs_lockstep``
-    every clip of a chunk is its own problem, with its own identity (:mod:`m3t.fitting.lockstep`)."""
-    own_identity = ctx.job.fitting.solver == "lbfgs_lockstep"
+    the first chunk fitting the identity and the others holding it. With ``fitting.solver: lbfgs_batched`` or
+    ``lbfgs_lockstep`` every clip of a chunk is its own problem, with its own identity."""
+    own_identity = ctx.job.fitting.per_clip_problems
     chunks: list[list[int]] = [[]]
     frames = 0
     for i, track in enumerate(tracks):
@@ -397,7 +397,7 @@ def process_batch(clips: list[Clip], ctx: FitContext) -> list[ClipOutcome]:
         clip, _, outputs, _ = members[i]
         shared = f"one per batch: {len(members)} clips of signer {clip.signer!r}"
         init = {"init_source": _init_source(clip, outputs),
-                "identity": "one per clip (lbfgs_lockstep)" if ctx.job.fitting.solver == "lbfgs_lockstep" else shared}
+                "identity": f"one per clip ({ctx.job.fitting.solver})" if ctx.job.fitting.per_clip_problems else shared}
         return fitted_record(clip, tracks[i], fitted[i], key, ctx), init
 
     try:

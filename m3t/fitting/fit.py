@@ -11,16 +11,18 @@
 :func:`fit_tracks` fits several clips of one signer in one batch: their frames are packed along the batch
 axis, each clip has its own camera and its own terms (the acceleration never spans two clips), the objective
 is the sum of the clips' objectives, and the identity (the body shape) is one, shared by every clip: the
-paper's static per-signer shape (with ``lbfgs_lockstep``, one per clip unless given). :func:`fit_track` is the
+paper's static per-signer shape (with ``lbfgs_batched`` / ``lbfgs_lockstep``, one per clip unless given). :func:`fit_track` is the
 one-clip case.
 
 Three solvers (``fitting.solver``), each after a camera-only stage that places the body in the image using the
 torso and head points:
 
 - ``lbfgs`` (default): L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
-- ``lbfgs_lockstep``: one L-BFGS per clip (its own history, step length, convergence test and identity), the
-  batch's clips in lock-step so that one objective evaluation serves them all (:mod:`m3t.fitting.lockstep`):
-  a batch then fits each clip as well as its own fit would (one L-BFGS over a batch does not);
+- ``lbfgs_batched``: the ``lbfgs`` algorithm run for every clip of a batch on its own (its own optimiser,
+  line searches, convergence test and identity), one objective evaluation serving them all
+  (:func:`m3t.fitting.lbfgs.minimise_batched`): each clip fitted as its own fit would be, at a batch's speed;
+- ``lbfgs_lockstep``: a vectorised L-BFGS per clip with a backtracking line search, in lock-step over a batch
+  (:mod:`m3t.fitting.lockstep`: no per-clip Python bookkeeping, for large batches on a GPU);
 - ``adam``: the first solver, a fixed number of Adam steps with a cosine learning-rate decay.
 
 The body root stays at the origin; the camera's extrinsics carry the global placement. Only the sparse
@@ -39,6 +41,7 @@ from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import look_at, project
 from m3t.fitting.config import FittingConfig
+from m3t.fitting.lbfgs import lbfgs_rounds, minimise_batched
 from m3t.fitting.lockstep import minimise_rows
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
@@ -93,26 +96,37 @@ def acceleration_loss(points: torch.Tensor) -> torch.Tensor:
 class _Pack:
     """Several clips' frames along one batch axis, and the per-clip reductions of the objective's terms.
 
-    Per-clip sums are products with (C, B) weight matrices, so a term costs the same few operations whatever the
-    number of clips: ``frames`` (1 where frame b is in clip c) and ``triplets`` (the mean over clip c's
-    acceleration triplets, centred on frame b + 1, of those whose three frames lie in clip c).
+    Per-clip sums are segment sums (``index_add``) over the rows a clip owns, never products with 0/1 weight
+    matrices: a value of one clip (an infinity or NaN at a wild line-search trial of its own) then reaches no
+    other clip's loss or gradient, as ``0 x inf`` in a weight product would. ``triplets``: the acceleration
+    triplets (t - 1, t, t + 1) whose three frames lie in one clip, by their first frame, with their clip and the
+    weight of the mean over that clip's triplets.
     """
 
     def __init__(self, lengths: list[int], device: torch.device):
         self.lengths = lengths
+        self.clips = len(lengths)
         self.clip = torch.repeat_interleave(torch.arange(len(lengths), device=device),
                                             torch.as_tensor(lengths, device=device))  # (B,) clip of each frame
         starts = np.cumsum([0] + lengths[:-1])
         self.slices = [slice(int(a), int(a) + n) for a, n in zip(starts, lengths)]
-        frames = np.zeros((len(lengths), sum(lengths)), dtype=np.float32)
-        triplets = np.zeros((len(lengths), max(sum(lengths) - 2, 0)), dtype=np.float32)
+        self.frame_weight = (1.0 / torch.as_tensor(lengths, dtype=torch.float32, device=device).clamp(min=1))[
+            self.clip]  # (B,) 1 / frames of the frame's clip
+        first, owner, weight = [], [], []
         for c, sl in enumerate(self.slices):
-            frames[c, sl] = 1.0
-            if sl.stop - sl.start >= 3:  # triplets (t - 1, t, t + 1) inside the clip, row t - 1
-                triplets[c, sl.start: sl.stop - 2] = 1.0 / (sl.stop - sl.start - 2)
-        self.frames = torch.as_tensor(frames, device=device)  # (C, B)
-        self.frame_means = self.frames / self.frames.sum(1, keepdim=True).clamp(min=1)  # (C, B) mean over frames
-        self.triplets = torch.as_tensor(triplets, device=device)  # (C, B - 2)
+            count = sl.stop - sl.start - 2
+            if count >= 1:
+                first.extend(range(sl.start, sl.stop - 2))
+                owner.extend([c] * count)
+                weight.extend([1.0 / count] * count)
+        self.triplet_first = torch.as_tensor(first, dtype=torch.long, device=device)
+        self.triplet_clip = torch.as_tensor(owner, dtype=torch.long, device=device)
+        self.triplet_weight = torch.as_tensor(weight, dtype=torch.float32, device=device)
+
+    def clip_sum(self, values: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        """(C, ...) sums of ``values`` (N, ...) by clip (``index``: the clip of each row, default every frame's)."""
+        index = self.clip if index is None else index
+        return values.new_zeros((self.clips, *values.shape[1:])).index_add(0, index, values)
 
 
 class _Terms:
@@ -126,7 +140,7 @@ class _Terms:
         for i, p in enumerate(parts):
             membership[p, i] = 1.0
         self.membership = membership
-        norm = pack.frames @ (conf @ membership)  # (C, parts) summed confidence
+        norm = pack.clip_sum(conf @ membership)  # (C, parts) summed confidence
         has_part = norm > 0
         # each part's weighted squared error / its summed confidence, averaged over the parts the clip has
         self.part_weights = has_part / torch.where(has_part, norm, torch.ones_like(norm)) \
@@ -138,13 +152,13 @@ class _Terms:
 
     def reprojection(self, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         sq = ((uv - target) ** 2).sum(-1) * self.conf  # (B, K)
-        return ((self.pack.frames @ (sq @ self.membership)) * self.part_weights).sum(1)
+        return (self.pack.clip_sum(sq @ self.membership) * self.part_weights).sum(1)
 
     def acceleration(self, points: torch.Tensor) -> torch.Tensor:
-        if self.pack.triplets.shape[1] == 0:
-            return points.new_zeros(len(self.pack.lengths))
-        acc = points[2:] - 2 * points[1:-1] + points[:-2]  # (B - 2, K, 3); rows across clips weigh 0
-        return self.pack.triplets @ ((acc ** 2).sum(-1) @ self.point_weights)
+        first = self.pack.triplet_first
+        acc = points[first + 2] - 2 * points[first + 1] + points[first]  # (triplets, K, 3), inside clips only
+        return self.pack.clip_sum(((acc ** 2).sum(-1) @ self.point_weights) * self.pack.triplet_weight,
+                                  self.pack.triplet_clip)
 
     def regulariser(self, params: dict[str, torch.Tensor], init: dict[str, torch.Tensor]) -> torch.Tensor:
         dims = tuple(params[k].shape[1] for k in params)
@@ -153,7 +167,7 @@ class _Terms:
             weights = torch.cat([torch.full((d,), 1.0 / (d * len(dims))) for d in dims]).to(self.conf)
             self._stream_weights[dims] = weights
         diff = torch.cat([params[k] - init[k] for k in params], 1)  # (B, D)
-        return self.pack.frame_means @ ((diff ** 2) @ weights)
+        return self.pack.clip_sum(((diff ** 2) @ weights) * self.pack.frame_weight)
 
 
 def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage: str, lr: float,
@@ -183,30 +197,15 @@ def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage:
         return
     if cfg.solver != "lbfgs":
         raise ValueError(f"fitting.solver is {cfg.solver!r}; expected 'lbfgs' or 'adam'")
-    if iterations <= 0:
-        return
-    opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.lbfgs_round, history_size=cfg.lbfgs_history,
-                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
-    evaluations: list[float] = []
 
-    def closure() -> torch.Tensor:
+    def evaluate(opt: torch.optim.Optimizer) -> torch.Tensor:
         opt.zero_grad()
         loss = loss_fn()
         loss.backward()
-        evaluations.append(float(loss.detach()))
         return loss
 
-    previous = float("inf")
-    while len(evaluations) < iterations:
-        opt.param_groups[0]["max_eval"] = min(iterations - len(evaluations), cfg.lbfgs_round * 5 // 4)
-        opt.step(closure)
-        if project_bounds is not None:
-            project_bounds()
-        best = min(evaluations)
-        if previous - best <= cfg.tolerance * abs(best):
-            break
-        previous = best
-    curve.extend(evaluations)
+    curve.extend(lbfgs_rounds(variables, evaluate, iterations, cfg.lbfgs_round, cfg.lbfgs_history, cfg.tolerance,
+                              project_bounds))
 
 
 def fit_track(
@@ -275,9 +274,8 @@ def fit_tracks(
     identity0 = body.default_identity().to(device)
     if known:
         identity0 = torch.as_tensor(identity, dtype=identity0.dtype, device=device)
-    # lbfgs_lockstep fits every clip on its own (its own identity too, unless the signer's is given)
-    lockstep = cfg.solver == "lbfgs_lockstep"
-    per_clip_identity = lockstep and not known
+    # lbfgs_batched and lbfgs_lockstep fit every clip on its own (its own identity too, unless the signer's is given)
+    per_clip_identity = cfg.per_clip_problems and not known
     shape = {"identity_index": pack.clip} if per_clip_identity else {}
     opt["identity"] = (identity0.expand(len(tracks), -1) if per_clip_identity else identity0).clone() \
         .requires_grad_(cfg.fit_identity and not known)
@@ -307,14 +305,20 @@ def fit_tracks(
 
     def solve(loss_per_clip, names: list[str], stage: str, lr: float, curve: list[float],
               project_bounds=None) -> None:
-        """Minimise the clips' summed objective over ``opt[names]``; lbfgs_lockstep: each clip its own."""
-        if not lockstep:
+        """Minimise the clips' summed objective over ``opt[names]``; lbfgs_batched / lbfgs_lockstep: each clip
+        its own."""
+        if not cfg.per_clip_problems:
             _minimise(lambda: loss_per_clip().sum(), [opt[k] for k in names], cfg, stage, lr, curve, project_bounds)
             return
         per_clip = [k for k in names if k in ("identity", "cam_rot", "cam_trans")]
-        curves = minimise_rows(opt, [k for k in names if k not in per_clip], per_clip, pack.clip, loss_per_clip,
-                               cfg.camera_iterations if stage == "camera" else cfg.iterations, cfg.lbfgs_round,
-                               cfg.tolerance, cfg.lbfgs_history, project_bounds)
+        per_row = [k for k in names if k not in per_clip]
+        budget = cfg.camera_iterations if stage == "camera" else cfg.iterations
+        if cfg.solver == "lbfgs_batched":
+            curves = minimise_batched(opt, per_row, per_clip, pack.slices, loss_per_clip, budget, cfg.lbfgs_round,
+                                      cfg.lbfgs_history, cfg.tolerance, bounds if project_bounds else None)
+        else:
+            curves = minimise_rows(opt, per_row, per_clip, pack.clip, loss_per_clip, budget, cfg.lbfgs_round,
+                                   cfg.tolerance, cfg.lbfgs_history, project_bounds)
         if stage == "full":
             clip_curves.extend(curves)
 
@@ -332,6 +336,10 @@ def fit_tracks(
               cfg.lr * 2, [])
 
     # Stage 2: everything, with the full objective (the sum of the clips' objectives).
+    bounds = {k: layout[k].bounds for k in scalar_streams if layout[k].bounds is not None}
+    if layout.identity_bounds is not None:
+        bounds["identity"] = layout.identity_bounds
+
     def bounded() -> None:
         with torch.no_grad():
             for k in scalar_streams:

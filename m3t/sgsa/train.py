@@ -6,8 +6,9 @@ Teacher forcing with **Gaussian noise augmentation** (PT): the previous frames f
 ``N(0, 1) x noise_rate x std_d``, where ``std_d`` is the per-coordinate standard deviation of the previous
 epoch's prediction error (none in the first epoch; the counter column is never perturbed). Adam at ``lr`` with
 default betas, ReduceLROnPlateau on the dev DTW-JPE, gradient clipping; the checkpoint with the lowest dev
-``dtw_jpe_mean_m`` (generated with the predicted counter) is ``best``. A resumable ``last`` is written every epoch
-(:class:`m3t.training.EpochTail`), the noise statistics with it: a killed run continues the same curve.
+``dtw_jpe_mean_m`` (generated with the predicted counter) is ``best``. A resumable ``last`` is written at most
+every 30 s and at the end (:class:`m3t.training.EpochTail`), the noise statistics with it: a killed run continues
+the same curve.
 
 Axis legend: B batch, U frames, S skeleton width with counter, K text tokens, G glosses.
 """

@@ -1,7 +1,7 @@
 """Training the recognition probe (M3T App. 0.D.3): cross-entropy with label smoothing, Adam, cosine LR down to
-``min_lr``, the checkpoint with the best validation Top-1 kept as ``best`` (the last epoch when there is no
-dev clip), and a resumable ``last`` written after every epoch (:class:`m3t.training.EpochTail`): a run killed
-part-way and started again with the same config and data continues the same loss curve (:func:`run_key`).
+``min_lr``, the checkpoint with the best validation Top-1 kept as ``best`` (the last epoch when there is no dev
+clip), and a resumable ``last`` written at most every 30 s and at the end (:class:`m3t.training.EpochTail`): a run
+killed part-way and started again with the same config and data continues the same loss curve (:func:`run_key`).
 
 The encoders are not part of the model trained here: the probe reads cached features (:mod:`m3t.slr.features`),
 so its optimiser holds the probe's parameters only.
@@ -106,7 +106,8 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
               stop_after_epochs: int | None = None) -> TrainRun:
     """Train one probe variant on ``train`` (features cached); select by Top-1 on ``dev`` (``val_top1``).
 
-    ``last_path``: the resumable checkpoint, written after every epoch and continued from when it exists
+    ``last_path``: the resumable checkpoint, written at most every 30 s and at the end, and continued from when
+    it exists
     (name it by :func:`run_key`); ``stop_after_epochs``: train at most that many more epochs."""
     from tqdm.auto import tqdm
 

@@ -1,7 +1,7 @@
 """Training the SMLM (M3T Sec. 3.3, App. 0.D.2): AdamW, cosine 2e-4 -> 1e-6, cross-entropy on both tasks,
 alternated per batch (translation with probability ``translation_prob``; ``translation_objective: false``
 trains production only, the ablation of Tab. 1), the checkpoint with the lowest mean validation DTW-JPE
-kept as ``best``, and a resumable ``last`` written after every epoch: a run killed part-way and started
+kept as ``best``, and a resumable ``last`` written at most every 30 s and at the end: a run killed part-way and started
 again with the same config, vocabulary and data continues the same loss curve (:func:`run_key` names it).
 
 GPU paths: device from :func:`m3t.runtime.choose_device`, optional bf16 autocast, data-parallel training
@@ -117,7 +117,8 @@ def train_smlm(
 ) -> TrainRun:
     """Train the SMLM; ``evaluate(model)`` returns validation metrics incl. ``dtw_jpe_mean_m`` (selection).
 
-    ``last_path``: the resumable checkpoint, written after every epoch and continued from when it exists
+    ``last_path``: the resumable checkpoint, written at most every 30 s and at the end, and continued from when
+    it exists
     (name it by :func:`run_key` so that a different run never continues it); ``stop_after_epochs``: train
     at most that many more epochs (a deliberate interruption, for tests and time-boxed jobs)."""
     from tqdm.auto import tqdm
