@@ -25,7 +25,7 @@ clips (per-clip fits give each clip its own). Ratios new/old come from the same 
 ``--arms`` picks the CPU arms (``old`` is the baseline of every ratio).
 
 With ``--device cuda`` (when present), the GPU sweep: signer batches on the GPU over ``--gpu-clips`` clips (0 =
-the whole corpus; lock-step batches mix signers), for every solver of ``--gpu-solvers`` x batch cap of ``--gpu-batch-frames`` x budget of
+the whole corpus; lock-step and batched batches mix signers), for every solver of ``--gpu-solvers`` x batch cap of ``--gpu-batch-frames`` x budget of
 ``--gpu-iterations``, with TF32
 matrix products off and (``--gpu-tf32``) on, in this process and in ``--gpu-workers`` spawned processes sharing
 the GPU (each builds its body model once, outside the timing); frames/s, PA and reprojection error per arm, and
@@ -35,7 +35,7 @@ machine (or those of an earlier result JSON, ``--gpu-reference``).
     python benchmarks/bench_fitting.py [--clips 12] [--threads 1] [--batch-frames 1024] [--budget-iterations 150]
                                       [--arms old,new,new_signer_batch,new_lockstep,new_batched,new_budget]
                                       [--device cuda]
-                                      [--gpu-solvers lbfgs,lbfgs_lockstep]
+                                      [--gpu-solvers lbfgs,lbfgs_lockstep,lbfgs_batched]
                                       [--gpu-clips 0] [--gpu-batch-frames 2048,8192] [--gpu-iterations 100,200]
                                       [--gpu-workers 3] [--out benchmarks/results/fitting.json]
 """
@@ -177,7 +177,7 @@ def gpu_sweep(args, params, new_cfg, body, listing, corpus) -> dict:
     gpu_body = AnnyBody().to(args.device)  # its own buffers: ``body`` stays on the CPU for scoring
     arms = []
     for solver, cap in ((solver, cap) for solver in args.gpu_solvers for cap in args.gpu_batch_frames):
-        groups = batches(clips, tracks, cap, by_signer=solver != "lbfgs_lockstep")
+        groups = batches(clips, tracks, cap, by_signer=solver == "lbfgs")
         for iterations in args.gpu_iterations:
             for tf32 in (False, True) if args.gpu_tf32 else (False,):
                 cfg = dataclasses.replace(gpu_cfg, iterations=iterations, solver=solver)
@@ -196,7 +196,7 @@ def gpu_sweep(args, params, new_cfg, body, listing, corpus) -> dict:
     torch.backends.cuda.matmul.allow_tf32 = False
     if args.gpu_workers > 1:
         for solver, cap in ((solver, cap) for solver in args.gpu_solvers for cap in args.gpu_batch_frames):
-            groups = batches(clips, tracks, cap, by_signer=solver != "lbfgs_lockstep")
+            groups = batches(clips, tracks, cap, by_signer=solver == "lbfgs")
             for iterations in args.gpu_iterations:
                 cfg = dataclasses.replace(gpu_cfg, iterations=iterations, solver=solver)
                 pool = process_pool(args.gpu_workers)
@@ -234,7 +234,8 @@ def main() -> None:
     parser.add_argument("--gpu-iterations", default="100,200", help="evaluation budgets of the GPU sweep")
     parser.add_argument("--gpu-tf32", action="store_true", help="also every GPU arm with TF32 matrix products")
     parser.add_argument("--gpu-workers", type=int, default=3, help="processes sharing the GPU (1: none)")
-    parser.add_argument("--gpu-solvers", default="lbfgs,lbfgs_lockstep", help="fitting.solver values of the sweep")
+    parser.add_argument("--gpu-solvers", default="lbfgs,lbfgs_lockstep,lbfgs_batched",
+                        help="fitting.solver values of the sweep")
     parser.add_argument("--gpu-reference", default="",
                         help="a result JSON whose CPU per-clip reference of the same clips to reuse (skips it)")
     parser.add_argument("--out", default="benchmarks/results/fitting.json")

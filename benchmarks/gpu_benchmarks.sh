@@ -21,7 +21,7 @@ timeout "${DTW_TIMEOUT:-240}" "$python" benchmarks/bench_dtw.py --device cuda --
     --gpu-batch "${DTW_GPU_BATCH:-144}" --out "$results/dtw_gpu.json" > "$results/dtw_gpu.log" 2>&1
 echo "bench_dtw: exit $? ($(( $(date +%s) - start )) s)"; grep -E '"(pa_gpu|pa_new|jpe_new)_pairs_per_s"' "$results/dtw_gpu.json"
 timeout "${FIT_TIMEOUT:-420}" "$python" benchmarks/bench_fitting.py --arms none --device cuda --gpu-tf32 \
-    --gpu-solvers "${GPU_SOLVERS:-lbfgs_lockstep,lbfgs}" \
+    --gpu-solvers "${GPU_SOLVERS:-lbfgs_lockstep,lbfgs_batched,lbfgs}" \
     --gpu-batch-frames "${GPU_BATCH_FRAMES:-1024,8192}" --gpu-iterations "${GPU_ITERATIONS:-100,200}" \
     --gpu-workers "${GPU_WORKERS:-3}" --out "$results/fitting_gpu.json" 2>&1 | tee "$results/fitting_gpu.log" \
     | grep -E '^gpu_|Error|error' | cut -c1-400
