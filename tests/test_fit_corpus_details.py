@@ -47,7 +47,9 @@ from m3t.shards.io import read_shard
 from m3t.trackers.track import load_track
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = {"iterations": 4, "camera_iterations": 2}
+# lbfgs: a signer batch (fit_corpus.batch_clips) is one problem with one identity, what the batch tests here check;
+# the default, lbfgs_batched (every clip its own problem), is tested in test_lbfgs_batched.py and the pipeline tests
+FAST = {"iterations": 4, "camera_iterations": 2, "solver": "lbfgs"}
 IDENTITY = np.array([0.4, 0.5, 0.5, 0.45, 0.6, 0.5], np.float32)
 SYNTHETIC = (("s0-a", "s0", 8), ("s0-b", "s0", 6), ("s0-c", "s0", 5), ("s1-a", "s1", 7))
 
@@ -608,11 +610,13 @@ def test_lbfgs_spends_at_most_its_evaluation_budget():
 
     x = torch.tensor([3.0, -2.0], requires_grad=True)
     curve: list[float] = []
-    _minimise(lambda: ((x - 1.0) ** 2).sum(), [x], FittingConfig(iterations=7, lbfgs_round=3), "full", 0.0, curve)
+    cfg = FittingConfig(solver="lbfgs", iterations=7, lbfgs_round=3)
+    _minimise(lambda: ((x - 1.0) ** 2).sum(), [x], cfg, "full", 0.0, curve)
     assert 0 < len(curve) <= 7 and curve[-1] < 1e-6 < curve[0]
     untouched = torch.tensor([3.0], requires_grad=True)
     none: list[float] = []
-    _minimise(lambda: (untouched ** 2).sum(), [untouched], FittingConfig(iterations=0), "full", 0.0, none)
+    _minimise(lambda: (untouched ** 2).sum(), [untouched], FittingConfig(solver="lbfgs", iterations=0), "full", 0.0,
+              none)
     assert none == [] and float(untouched.detach()) == 3.0
 
 
@@ -1298,7 +1302,8 @@ def test_lbfgs_line_search_reaches_the_minimum_of_a_robust_loss():
 
     x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
     curve: list[float] = []
-    _minimise(lambda: torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(iterations=30), "full", 0.0, curve)
+    _minimise(lambda: torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30), "full",
+              0.0, curve)
     assert len(curve) <= 30 and curve[-1] == pytest.approx(3.0, abs=1e-9)
     np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-4)
 
@@ -1961,7 +1966,7 @@ def test_lbfgs_minimises_a_loss_of_tiny_absolute_size_too():
 
     x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
     curve: list[float] = []
-    _minimise(lambda: 1e-6 * torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(iterations=30), "full", 0.0,
-              curve)
+    _minimise(lambda: 1e-6 * torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30),
+              "full", 0.0, curve)
     assert 2 < len(curve) <= 30 and curve[-1] == pytest.approx(3e-6, rel=1e-6)
     np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-3)
