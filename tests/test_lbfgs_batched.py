@@ -84,6 +84,14 @@ def test_every_problem_ends_exactly_where_it_ends_alone(which):
     assert len(which) == 1 or len(lengths) > 1  # the problems stopped at different times
 
 
+def test_it_runs_under_a_callers_no_grad_as_the_per_problem_solver_does():
+    with torch.no_grad():
+        tensors, slices, curves, _ = solve_batched([0, 2], 30)
+    for c, (p, sl) in enumerate(zip([0, 2], slices)):
+        rows, _, curve = solve_alone(p, 30)
+        assert torch.equal(tensors["rows"][sl].detach(), rows) and curves[c] == curve
+
+
 def test_bounds_are_projected_per_problem():
     bounds = {"tail": (0.0, 0.2)}
     tensors, _, curves, _ = solve_batched([0, 1, 2], 40, bounds)

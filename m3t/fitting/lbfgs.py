@@ -142,9 +142,10 @@ def minimise_batched(tensors: dict[str, torch.Tensor], per_row: list[str], per_p
         for own in leaves:
             for leaf in own.values():
                 leaf.grad = None
-        tensors.update({k: torch.cat([own[k] for own in leaves]) for k in originals})
-        losses = loss_fn()
-        losses.sum().backward()
+        with torch.enable_grad():  # as torch's LBFGS runs its closure, whatever the caller's grad mode
+            tensors.update({k: torch.cat([own[k] for own in leaves]) for k in originals})
+            losses = loss_fn()
+            losses.sum().backward()
         return losses.detach()
 
     shared = _SharedEvaluations(len(slices), evaluate_all)
