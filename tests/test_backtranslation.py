@@ -45,7 +45,7 @@ TEXTS = {"ASL-SYN": ["The friend buys a red car.", "My father drinks water", "th
 TINY = BackTranslationConfig(d_model=32, encoder_layers=1, decoder_layers=1, attention_heads=2, ffn_dim=64,
                              dropout=0.0, max_text_tokens=12)
 FAST = BackTranslationTrainConfig(epochs=60, batch_size=4, lr=3e-3, weight_decay=0.0, label_smoothing=0.0,
-                                  eval_every=20, device="cpu")
+                                  eval_every=20, device="cpu", workers=1)
 
 
 def fitted(split: str, language: str = "ASL-SYN", seed: int = 0, label: int | None = None,
@@ -229,6 +229,32 @@ def test_pipeline_trains_one_model_per_language(shards_data, pipeline_models):
     skipped = [json.loads(line) for line in (out / "skipped.jsonl").read_text().splitlines()]
     assert {s["language"] for s in skipped} == {"ISO-SYN"} and "isolated sign" in skipped[0]["reason"]
     assert json.loads((out / "metrics.json").read_text()) == pytest.approx(pipeline_models)
+
+
+def test_languages_trained_in_worker_processes_equal_one_process_on_their_threads(shards_data, tmp_path):
+    """``backtranslation_train.workers: 2`` trains ASL-SYN and CSL-SYN in two spawned processes of one thread each
+    (this process has two): checkpoints, metrics.json, languages.json, skipped.jsonl and the per-epoch records
+    are those of one process that trains the languages one after another on one thread."""
+    from m3t.training import worker_split
+
+    runs = {}
+    for workers, threads in ((1, 1), (2, 2)):
+        torch.set_num_threads(threads)  # conftest restores the count
+        root = tmp_path / f"workers{workers}"
+        data = dataclasses.replace(shards_data, models_dir=str(root / "models"))
+        cfg = dataclasses.replace(FAST, epochs=4, eval_every=2, cache_dir=str(root / "cache"), workers=workers)
+        assert worker_split(cfg.workers, 2, cfg.device) == ((1, 0) if workers == 1 else (2, 1))
+        records: list = []
+        report = run_train_backtranslation(TINY, cfg, data, progress=False, on_epoch=lambda language, record, epoch,
+                                           out=records: out.append((language, epoch, record)))
+        runs[workers] = (report, records, data.backtranslation_dir)
+    (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
+    assert one == two and one_records == two_records and len(one_records) == 2 * 4
+    for name in ("metrics.json", "languages.json", "skipped.jsonl"):
+        assert (one_dir / name).read_bytes() == (two_dir / name).read_bytes(), name
+    for name in ("ASL-SYN.pt", "CSL-SYN.pt"):
+        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
 
 
 def test_empty_generation_is_scored_zero_and_counted(shards_data, pipeline_models):

@@ -22,6 +22,7 @@ from m3t.sgsa.data import collate, make_samples, vocabularies
 from m3t.sgsa.pipeline import run_evaluate, run_train
 from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_settings
 from m3t.sgsa.train import losses, train_sgsa
+from m3t.training import worker_split
 from test_tokenizer_training import shards_dir  # noqa: F401 - the tiny fitted shards fixture
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -234,3 +235,26 @@ def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
     pt_row = next(line for line in table.splitlines() if line.startswith("| Progressive Transformers"))
     cells = [c.strip() for c in pt_row.strip().strip("|").split("|")]
     assert len(cells) == 14 and "-" not in cells[1:7]  # dev BLEU-4 .. ROUGE and DTW-JPE filled from the run
+
+
+def test_systems_trained_in_worker_processes_equal_one_process_on_their_threads(shards_dir, body, tmp_path):  # noqa: F811
+    """``sgsa_train.workers: 2`` trains PT and SGSA in two spawned processes of one thread each (this process has
+    two): the checkpoints, metrics.json and per-epoch records are those of one process that trains the systems
+    one after another on one thread."""
+    runs = {}
+    for workers, threads in ((1, 1), (2, 2)):
+        torch.set_num_threads(threads)  # conftest restores the count
+        root = tmp_path / f"workers{workers}"
+        params = tiny_params(shards_dir, root, sgsa_train={"cache_dir": str(root / "cache"), "workers": workers})
+        assert worker_split(workers, 2, "cpu") == ((1, 0) if workers == 1 else (2, 1))
+        records: list = []
+        report = run_train(params.sgsa, params.sgsa_train, body, params.data, progress=False,
+                           on_epoch=lambda system, record, epoch, out=records: out.append((system, epoch, record)))
+        runs[workers] = (report, records, params.data.sgsa_dir)
+    (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
+    assert one == two and len(one_records) == 2 * params.sgsa_train.epochs
+    assert one_records == two_records  # replayed in system order
+    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    for name in ("pt.pt", "sgsa.pt"):
+        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,7 @@ from m3t.tokenizers.vae import MotionTokenizer
 
 TINY_PROBE = SLRConfig(layers=1, heads=2, ffn_mult=2, dropout=0.0, max_steps=32,
                        trim=TrimConfig(margin=1, min_frames=8))
-TINY_TRAIN = SLRTrainConfig(epochs=3, batch_size=8, lr=3e-3, device="cpu")
+TINY_TRAIN = SLRTrainConfig(epochs=3, batch_size=8, lr=3e-3, device="cpu", workers=1)
 
 
 @pytest.fixture(scope="module")
@@ -266,6 +267,33 @@ def test_corpus_without_labelled_clips_is_refused(body, tmp_path):
     with pytest.raises(ValueError, match="no labelled"):
         run_train_slr(TINY_PROBE, dataclasses.replace(TINY_TRAIN, cache_dir=str(tmp_path / "cache")), body, data,
                       corpus="sentences", progress=False)
+
+
+def test_variants_trained_in_worker_processes_equal_one_process_on_their_threads(data, body, tmp_path):
+    """``slr_train.workers: 2`` trains the full and the face-less probe in two spawned processes of one thread
+    each (this process has two): checkpoints, metrics.json and the per-epoch records are those of one process
+    that trains the variants one after another on one thread."""
+    from m3t.training import worker_split
+
+    runs = {}
+    for workers, threads in ((1, 1), (2, 2)):
+        torch.set_num_threads(threads)  # conftest restores the count
+        root = tmp_path / f"workers{workers}"
+        where = dataclasses.replace(data, models_dir=str(root / "models"))
+        shutil.copytree(Path(data.models_dir) / "tokenizers", Path(where.models_dir) / "tokenizers")
+        cfg = dataclasses.replace(TINY_TRAIN, cache_dir=str(root / "cache"), workers=workers)
+        assert worker_split(cfg.workers, 2, cfg.device) == ((1, 0) if workers == 1 else (2, 1))
+        records: list = []
+        report = run_train_slr(TINY_PROBE, cfg, body, where, progress=False, on_epoch=lambda variant, record, epoch,
+                               out=records: out.append((variant, epoch, record)))
+        runs[workers] = (report, records, Path(where.models_dir) / "slr")
+    (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
+    assert one == two and one_records == two_records and len(one_records) == 2 * TINY_TRAIN.epochs
+    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    for name in ("full.pt", "no_face.pt"):
+        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+    assert (two_dir / "confusion_dev_no_face.png").stat().st_size > 0  # drawn in the worker
 
 
 # ----------------------------------------------------------------------------------------- end to end

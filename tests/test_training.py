@@ -165,3 +165,111 @@ def test_the_same_checkpoint_payload_gives_the_same_bytes(tmp_path):
     b = save_checkpoint(tmp_path / "sub" / "b.pt", payload).read_bytes()
     assert a == b
     assert read_checkpoint(tmp_path / "a.pt", "x", "test", "stage")["epoch"] == 3
+
+
+# ---- run_jobs: independent trainings in worker processes ---------------------------------------------------
+def _job_square(job: int, on_epoch) -> tuple[int, int, int]:
+    """A job for run_jobs: two epoch records, then its square, its process and its thread count."""
+    import os
+
+    for epoch in (1, 2):
+        if on_epoch is not None:
+            on_epoch({"value": float(job * epoch)}, epoch)
+    return job * job, os.getpid(), torch.get_num_threads()
+
+
+def _job_fails(job: int, on_epoch) -> int:
+    if job == 2:
+        raise KeyError(f"job {job} has no data")
+    return job
+
+
+def _job_dies(job: int, on_epoch) -> int:
+    import os
+
+    if job == 1:
+        os._exit(3)  # as the OOM killer would
+    return job
+
+
+def test_worker_split_uses_processes_only_for_several_jobs_on_the_cpu_without_ddp():
+    from m3t.training import worker_split
+
+    torch.set_num_threads(4)  # conftest restores the count
+    assert worker_split(2, 3, "cpu") == (2, 2) and worker_split(4, 2, "cpu") == (2, 2)
+    assert worker_split(8, 8, "cpu") == (8, 1)  # never fewer than one thread each
+    assert worker_split(1, 3, "cpu") == (1, 0) and worker_split(2, 1, "cpu") == (1, 0)
+    assert worker_split(2, 3, "cpu", world_size=2) == (1, 0)
+
+
+def test_run_jobs_in_workers_returns_in_job_order_with_the_records_of_one_process_per_job():
+    """Here, each job's records reach on_epoch as they happen; in two spawned one-thread workers the same
+    results come back in job order and the records are replayed in job order."""
+    import os
+
+    from m3t.training import run_jobs
+
+    here: list = []
+    results_here = run_jobs(_job_square, [3, 1, 2], ["c", "a", "b"], on_epoch=lambda *r: here.append(r))
+    assert [r[0] for r in results_here] == [9, 1, 4] and {r[1] for r in results_here} == {os.getpid()}
+    assert here == [("c", {"value": 3.0}, 1), ("c", {"value": 6.0}, 2), ("a", {"value": 1.0}, 1),
+                    ("a", {"value": 2.0}, 2), ("b", {"value": 2.0}, 1), ("b", {"value": 4.0}, 2)]
+    there: list = []
+    results_there = run_jobs(_job_square, [3, 1, 2], ["c", "a", "b"], processes=2, threads=1,
+                             on_epoch=lambda *r: there.append(r))
+    assert [r[0] for r in results_there] == [9, 1, 4] and there == here
+    assert os.getpid() not in {r[1] for r in results_there} and {r[2] for r in results_there} == {1}
+    with pytest.raises(ValueError, match="3 jobs but 2 names"):
+        run_jobs(_job_square, [1, 2, 3], ["a", "b"])
+
+
+def test_run_jobs_raises_a_jobs_error_as_raised_and_names_a_worker_that_died():
+    from m3t.training import run_jobs
+
+    with pytest.raises(KeyError, match="job 2 has no data"):
+        run_jobs(_job_fails, [1, 2], ["one", "two"], processes=2, threads=1)
+    # the first job's worker dies (when another job's did, the first may be reported broken too)
+    with pytest.raises(RuntimeError, match=r"running system 'one' died .*set sgsa_train.workers: 1"):
+        run_jobs(_job_dies, [1, 2], ["one", "two"], processes=2, threads=1, what="system",
+                 setting="sgsa_train.workers")
+
+
+def _job_sleeps(job: str, on_epoch) -> None:
+    """Writes its process id to the file ``job``, then sleeps far longer than any test waits."""
+    import os
+    import time
+    from pathlib import Path
+
+    Path(job).write_text(str(os.getpid()))
+    time.sleep(120)
+
+
+def test_a_worker_ends_itself_when_the_stage_process_is_killed(tmp_path):
+    """``kill -9`` of a stage leaves its pool no chance to stop the workers; each notices its parent is gone and
+    exits (an orphan would go on training and hold the run's lock against the rerun)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    pid_file = tmp_path / "worker.pid"
+    code = ("import test_training as t; from m3t.training import run_jobs; "
+            f"run_jobs(t._job_sleeps, [{str(pid_file)!r}, {str(pid_file)!r}], ['a', 'b'], processes=2, threads=1)")
+    stage = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).parent)
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() or not pid_file.read_text():
+            assert time.monotonic() < deadline and stage.poll() is None, "the worker never started"
+            time.sleep(0.2)
+        worker = int(pid_file.read_text())
+        os.kill(stage.pid, signal.SIGKILL)
+        stage.wait()
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{worker}").exists() and "Z" not in Path(f"/proc/{worker}/stat").read_text().split()[2]:
+            assert time.monotonic() < deadline, f"worker {worker} still runs 10 s after its stage was killed"
+            time.sleep(0.2)
+    finally:
+        if stage.poll() is None:
+            stage.kill()

@@ -67,9 +67,11 @@ class BackTranslationTrainConfig:
     seed: int = 0
     device: str = "auto"
     precision: Literal["fp32", "bf16"] = "fp32"
+    workers: int = 2  # CPU: the languages trained in this many processes sharing the threads (1 = one after
+    # another, as on a GPU)
 
     def __post_init__(self) -> None:
-        for key in ("epochs", "batch_size", "eval_every"):
+        for key in ("epochs", "batch_size", "eval_every", "workers"):
             if getattr(self, key) < 1:
                 raise ValueError(f"backtranslation_train.{key}: expected >= 1, got {getattr(self, key)}")
         if not 0 < self.lr_factor < 1:

@@ -24,8 +24,9 @@ import csv
 import io
 import json
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ import numpy as np
 from m3t.atomic import copy_file, write_json, write_jsonl, write_text
 from m3t.backtranslation.checkpoint import SKELETON_STAGE, STAGE, LoadedBackTranslation, load_backtranslation
 from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTrainConfig
-from m3t.backtranslation.data import InputSpec, language_corpus, skip_reason
+from m3t.backtranslation.data import InputSpec, LanguageCorpus, language_corpus, skip_reason
 from m3t.backtranslation.decode import translate
 from m3t.backtranslation.train import run_key, train_backtranslation
 from m3t.body.protocol import BodyModel
@@ -44,6 +45,7 @@ from m3t.shards.folders import DataConfig
 from m3t.shards.io import production_data_version, read_production_split, shard_layout
 from m3t.shards.schema import FittedClip, layout_to_json
 from m3t.shards.skeletons import skeleton_clip
+from m3t.training import run_jobs, worker_split
 
 PER_CLIP_COLUMNS = ("clip_id", "language", "frames", "reference", "hypothesis", "bleu1", "bleu2", "bleu3", "bleu4",
                     "rouge_l")
@@ -95,6 +97,32 @@ class SkeletonInput:
         return [skeleton_clip(self.body, c, self.graph).as_fitted() if c.num_frames else c for c in clips]
 
 
+def _train_language(model_cfg: BackTranslationConfig, train_cfg: BackTranslationTrainConfig, spec: InputSpec,
+                    version: str, out: Path, progress: bool, corpus: LanguageCorpus,
+                    on_epoch: Callable[[dict[str, float], int], None] | None) -> tuple[dict[str, float], dict]:
+    """Train one language's model into ``out`` (here or in a worker process); its numbers for metrics.json and
+    its entry of languages.json."""
+    language = corpus.language
+    key = run_key(model_cfg, train_cfg, corpus, spec, version)
+    cache = Path(train_cfg.cache_dir)
+    best, last = cache / f"{key}.best.pt", cache / f"{key}.last.pt"
+    result = train_backtranslation(model_cfg, train_cfg, corpus, spec, version, best, last, progress=progress,
+                                   on_epoch=on_epoch)
+    copy_file(best, out / checkpoint_name(language))
+    numbers = {
+        f"{language}/train_clips": float(len(corpus.train)), f"{language}/dev_clips": float(len(corpus.dev)),
+        f"{language}/skipped_clips": float(len(corpus.skipped)),
+        f"{language}/truncated_clips": float(corpus.truncated),
+        f"{language}/text_vocabulary_size": float(len(corpus.text_vocab)),
+        f"{language}/gloss_vocabulary_size": float(len(corpus.gloss_vocab or ())),
+        f"{language}/best_epoch": float(result.best.get("epoch", 0)),
+        **{f"{language}/best_{k}": float(v) for k, v in result.best.items() if k.startswith(("val_", "train_"))}}
+    described = {"checkpoint": checkpoint_name(language), "input": spec.describe(),
+                 "text_rule": corpus.processor.rule, "gloss_source": corpus.gloss_source,
+                 "scoring": f"{SLT_DEFINITION}, per {slt_unit(language)}", "selected_on_dev": bool(corpus.dev)}
+    return numbers, described
+
+
 def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackTranslationTrainConfig,
                               data: DataConfig, on_epoch=None, progress: bool = True,
                               skeleton: SkeletonInput | None = None) -> dict[str, float]:
@@ -122,28 +150,16 @@ def run_train_backtranslation(model_cfg: BackTranslationConfig, train_cfg: BackT
                for c in train + dev if c.clip.language not in languages]
     report: dict[str, float] = {}
     described: dict[str, dict] = {}
-    for language in languages:
-        corpus = language_corpus(language, train_by[language], dev_by.get(language, []), spec, model_cfg)
-        key = run_key(model_cfg, train_cfg, corpus, spec, version)
-        cache = Path(train_cfg.cache_dir)
-        best, last = cache / f"{key}.best.pt", cache / f"{key}.last.pt"
-        result = train_backtranslation(
-            model_cfg, train_cfg, corpus, spec, version, best, last, progress=progress,
-            on_epoch=None if on_epoch is None else lambda record, epoch, lang=language: on_epoch(lang, record, epoch))
-        copy_file(best, out / checkpoint_name(language))
+    corpora = [language_corpus(language, train_by[language], dev_by.get(language, []), spec, model_cfg)
+               for language in languages]
+    processes, threads = worker_split(train_cfg.workers, len(corpora), train_cfg.device)
+    run = partial(_train_language, model_cfg, train_cfg, spec, version, out, progress)
+    results = run_jobs(run, corpora, languages, processes, threads, on_epoch, "language",
+                       "backtranslation_train.workers")
+    for corpus, (numbers, description) in zip(corpora, results):
         skipped.extend(corpus.skipped)
-        report.update({
-            f"{language}/train_clips": float(len(corpus.train)), f"{language}/dev_clips": float(len(corpus.dev)),
-            f"{language}/skipped_clips": float(len(corpus.skipped)),
-            f"{language}/truncated_clips": float(corpus.truncated),
-            f"{language}/text_vocabulary_size": float(len(corpus.text_vocab)),
-            f"{language}/gloss_vocabulary_size": float(len(corpus.gloss_vocab or ())),
-            f"{language}/best_epoch": float(result.best.get("epoch", 0)),
-            **{f"{language}/best_{k}": float(v) for k, v in result.best.items() if k.startswith(("val_", "train_"))}})
-        described[language] = {"checkpoint": checkpoint_name(language), "input": spec.describe(),
-                               "text_rule": corpus.processor.rule, "gloss_source": corpus.gloss_source,
-                               "scoring": f"{SLT_DEFINITION}, per {slt_unit(language)}",
-                               "selected_on_dev": bool(corpus.dev)}
+        report.update(numbers)
+        described[corpus.language] = description
     for stale in out.glob("*.pt"):
         if stale.name not in {checkpoint_name(lang) for lang in languages}:
             stale.unlink()

@@ -82,7 +82,7 @@ def run_key(model_cfg: BackTranslationConfig, cfg: BackTranslationTrainConfig, c
     """What a resumable ``last`` must agree on: code version, model and training settings (not where files go,
     the device or decode-time settings), language, vocabularies, input layout and data."""
     model = {k: v for k, v in dataclasses.asdict(model_cfg).items() if k not in DECODE_ONLY}
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device", "workers")}
     gloss = None if corpus.gloss_vocab is None else corpus.gloss_vocab.to_dict()
     return run_digest(TRAIN_VERSION, corpus.language, model, settings, corpus.text_vocab.to_dict(), gloss,
                             spec.to_dict(), data_version)

@@ -108,9 +108,11 @@ class SGSATrainConfig:
     eval_max_clips: int = 16  # dev clips generated at each validation (0 = all)
     seed: int = 0
     device: str = "auto"
+    workers: int = 2  # CPU: the systems trained in this many processes sharing the threads (1 = one after
+    # another, as on a GPU)
 
     def __post_init__(self) -> None:
-        for key in ("epochs", "batch_size", "eval_every"):
+        for key in ("epochs", "batch_size", "eval_every", "workers"):
             if getattr(self, key) < 1:
                 raise ValueError(f"sgsa_train.{key}: expected >= 1, got {getattr(self, key)}")
         if not 0 < self.lr_factor < 1:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +42,8 @@ from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
 from m3t.sgsa.data import Sample, collate, make_samples, vocabularies
 from m3t.sgsa.evaluate import SELECTION_METRIC, generate, produced_points, score_production
 from m3t.sgsa.train import run_key, train_sgsa
+from m3t.backtranslation.text import Vocabulary
+from m3t.training import run_jobs, worker_split
 
 SMLM_SYSTEM = "smlm"  # the M3T SMLM's generated motion, posed into the same skeleton
 REFERENCE = "ground_truth"  # the fitted motion itself: the judges' upper bound
@@ -50,6 +54,22 @@ def checkpoint_name(system: str) -> str:
 
 
 # ------------------------------------------------------------------------------------------ train
+def _train_system(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
+                  gloss_vocab: Vocabulary | None, train: list[Sample], dev: list[Sample], version: str, out: Path,
+                  progress: bool, system: str, on_epoch: Callable[[dict[str, float], int], None] | None
+                  ) -> dict[str, float]:
+    """Train one system into ``out/<system>.pt`` (here or in a worker process); its numbers for metrics.json."""
+    system_cfg = model_cfg.for_system(system)
+    key = run_key(system_cfg, cfg, graph, text_vocab, gloss_vocab, version)
+    best, last = Path(cfg.cache_dir) / f"{key}.best.pt", Path(cfg.cache_dir) / f"{key}.last.pt"
+    result = train_sgsa(system_cfg, cfg, graph, text_vocab, gloss_vocab, train, dev, version, best, last,
+                        progress=progress, on_epoch=on_epoch)
+    copy_file(best, out / checkpoint_name(system))
+    parameters = sum(p.numel() for p in result.model.parameters() if p.requires_grad)
+    return {f"{system}/parameters": float(parameters), f"{system}/best_epoch": float(result.best.get("epoch", 0)),
+            **{f"{system}/best_{k}": float(v) for k, v in result.best.items() if k.startswith(("val_", "train_"))}}
+
+
 def run_train(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body: BodyModel, data: DataConfig, on_epoch=None,
               progress: bool = True) -> dict[str, float]:
     """Train every system of ``cfg.systems``; ``on_epoch(system, record, epoch)`` sees each epoch's record."""
@@ -68,20 +88,12 @@ def run_train(model_cfg: SGSAConfig, cfg: SGSATrainConfig, body: BodyModel, data
                                 "cut_frames": float(train.cut_frames), "skeleton_width": float(graph.width + 1),
                                 "text_vocabulary_size": float(len(text_vocab)),
                                 "gloss_vocabulary_size": float(0 if gloss_vocab is None else len(gloss_vocab))}
-    for system in cfg.systems:
-        system_cfg = model_cfg.for_system(system)
-        key = run_key(system_cfg, cfg, graph, text_vocab, gloss_vocab, version)
-        best, last = Path(cfg.cache_dir) / f"{key}.best.pt", Path(cfg.cache_dir) / f"{key}.last.pt"
-        result = train_sgsa(system_cfg, cfg, graph, text_vocab, gloss_vocab, train.samples, dev.samples, version,
-                            best, last, progress=progress,
-                            on_epoch=None if on_epoch is None else
-                            lambda record, epoch, s=system: on_epoch(s, record, epoch))
-        copy_file(best, out / checkpoint_name(system))
-        parameters = sum(p.numel() for p in result.model.parameters() if p.requires_grad)
-        report.update({f"{system}/parameters": float(parameters),
-                       f"{system}/best_epoch": float(result.best.get("epoch", 0)),
-                       **{f"{system}/best_{k}": float(v) for k, v in result.best.items()
-                          if k.startswith(("val_", "train_"))}})
+    processes, threads = worker_split(cfg.workers, len(cfg.systems), cfg.device)
+    run = partial(_train_system, model_cfg, cfg, graph, text_vocab, gloss_vocab, train.samples, dev.samples, version,
+                  out, progress)
+    for numbers in run_jobs(run, list(cfg.systems), list(cfg.systems), processes, threads, on_epoch, "system",
+                            "sgsa_train.workers"):
+        report.update(numbers)
     for stale in out.glob("*.pt"):
         if stale.name not in {checkpoint_name(s) for s in cfg.systems}:
             stale.unlink()

@@ -40,7 +40,7 @@ def run_key(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, t
             gloss_vocab: Vocabulary | None, data_version: str) -> str:
     """What a resumable ``last`` must agree on: code version, model and training settings (not the cache folder or
     the device), graph, vocabularies and data."""
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device")}
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("cache_dir", "device", "workers")}
     return run_digest(TRAIN_VERSION, dataclasses.asdict(model_cfg), settings, graph.to_dict(), text_vocab.to_dict(),
                       None if gloss_vocab is None else gloss_vocab.to_dict(), data_version)
 

@@ -81,11 +81,15 @@ class SLRTrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     feature_dtype: Literal["float32", "float16"] = "float32"  # cached encoder features (float16 halves memory)
     bad_clips: Literal["error", "skip"] = "error"  # a clip too short / too long: stop, or list it and go on
+    workers: int = 2  # CPU: the variants trained in this many processes sharing the threads (1 = one after
+    # another, as on a GPU)
 
     def __post_init__(self) -> None:
         unknown = [v for v in self.variants if v not in VARIANTS]
         if unknown or not self.variants or len(set(self.variants)) != len(self.variants):
             raise ValueError(f"variants {list(self.variants)}: expected distinct names of {list(VARIANTS)}")
+        if self.workers < 1:
+            raise ValueError(f"slr_train.workers: expected >= 1, got {self.workers}")
 
 
 @dataclass(frozen=True)

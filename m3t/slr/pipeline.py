@@ -17,6 +17,7 @@ import csv
 import io
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,7 @@ from m3t.slr.train import predict_logits, run_key, train_slr
 from m3t.slr.trim import Trimmer
 from m3t.tokenizers.data import GROUPS
 from m3t.tokenizers.tokenize import load_tokenizers
+from m3t.training import run_jobs, worker_split
 
 SPLITS = ("train", "dev", "test")
 
@@ -121,6 +123,31 @@ def trim_summary(examples: Iterable[Example]) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------------------------------ train
+def _train_variant(cfg: SLRConfig, train_cfg: SLRTrainConfig, classes: ClassTable, width: int,
+                   digests: dict[str, str], train: list[Example], dev: list[Example], version: str, out_dir: Path,
+                   corpus: str, progress: bool, variant: str,
+                   on_epoch: Callable[[dict[str, float], int], None] | None) -> dict[str, float]:
+    """Train one probe variant into ``out_dir/<variant>.pt`` (here or in a worker process), with its dev
+    confusion plot; its numbers for metrics.json."""
+    meta = ProbeMeta(variant, classes.labels, classes.names, digests)
+    dims = ProbeDims(width, len(classes.labels), variant_streams(variant))
+    # best and last live in the cache under the run key (a killed run continues where it stopped; a finished
+    # one is not redone); <variant>.pt only ever holds the best of a finished run
+    key = run_key(cfg, train_cfg, dims, meta, version)
+    cache = Path(train_cfg.cache_dir)
+    best, last = cache / f"{variant}-{key}.best.pt", cache / f"{variant}-{key}.last.pt"
+    result = train_slr(cfg, train_cfg, meta, width, train, dev, version, best, last, on_epoch, progress)
+    copy_file(best, out_dir / f"{variant}.pt")
+    numbers = {f"{variant}/best_epoch": float(result.best.get("epoch", 0)),
+               **{f"{variant}/best_{k}": v for k, v in result.best.items() if k.startswith(("val_", "train_"))}}
+    if dev:
+        loaded = load_slr(best, choose_device(train_cfg.device))
+        logits = predict_logits(loaded.model, dev, train_cfg.batch_size)
+        plot_confusion(np.array([e.target for e in dev]), logits.argmax(-1).numpy(), classes.names,
+                       out_dir / f"confusion_dev_{variant}.png", f"{corpus} dev, probe {variant}")
+    return numbers
+
+
 def run_train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, body: BodyModel | None, data: DataConfig,
                   corpus: str | None = None, on_epoch: Callable[[str, dict[str, float], int], None] | None = None,
                   progress: bool = True) -> dict[str, float]:
@@ -150,24 +177,12 @@ def run_train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, body: BodyModel | N
                                 "encoder_width": float(encoders.width), "trimmed_share": trim["trimmed_share"],
                                 "mean_kept_frames": trim["mean_kept_frames"],
                                 "clips_without_active_frames": trim["clips_without_active_frames"]}
-    for variant in train_cfg.variants:
-        meta = ProbeMeta(variant, classes.labels, classes.names, digests)
-        dims = ProbeDims(encoders.width, len(classes.labels), variant_streams(variant))
-        # best and last live in the cache under the run key (a killed run continues where it stopped; a finished
-        # one is not redone); <variant>.pt only ever holds the best of a finished run
-        key = run_key(cfg, train_cfg, dims, meta, version)
-        cache = Path(train_cfg.cache_dir)
-        best, last = cache / f"{variant}-{key}.best.pt", cache / f"{variant}-{key}.last.pt"
-        result = train_slr(cfg, train_cfg, meta, encoders.width, examples["train"], examples["dev"], version, best,
-                           last, None if on_epoch is None else lambda r, e, v=variant: on_epoch(v, r, e), progress)
-        copy_file(best, out_dir / f"{variant}.pt")
-        report[f"{variant}/best_epoch"] = float(result.best.get("epoch", 0))
-        report.update({f"{variant}/best_{k}": v for k, v in result.best.items() if k.startswith(("val_", "train_"))})
-        if examples["dev"]:
-            loaded = load_slr(best, device)
-            logits = predict_logits(loaded.model, examples["dev"], train_cfg.batch_size)
-            plot_confusion(np.array([e.target for e in examples["dev"]]), logits.argmax(-1).numpy(), classes.names,
-                           out_dir / f"confusion_dev_{variant}.png", f"{corpus} dev, probe {variant}")
+    processes, threads = worker_split(train_cfg.workers, len(train_cfg.variants), train_cfg.device)
+    run = partial(_train_variant, cfg, train_cfg, classes, encoders.width, digests, examples["train"], examples["dev"],
+                  version, out_dir, corpus, progress)
+    for numbers in run_jobs(run, list(train_cfg.variants), list(train_cfg.variants), processes, threads, on_epoch,
+                            "probe variant", "slr_train.workers"):
+        report.update(numbers)
     write_json(out_dir / "metrics.json", report)
     write_jsonl(out_dir / "skipped.jsonl", skipped)
     return report

@@ -95,7 +95,8 @@ def validation_metrics(model: SLRProbe, examples: Sequence[Example], batch_size:
 def run_key(cfg: SLRConfig, train_cfg: SLRTrainConfig, dims: ProbeDims, meta: ProbeMeta, data_version: str) -> str:
     """What a resumable ``last`` must agree on to be continued: the code's training version, the probe and
     training settings (not where files go nor the device), the classes, the tokenizers and the data."""
-    settings = {k: v for k, v in dataclasses.asdict(train_cfg).items() if k not in ("cache_dir", "device", "variants")}
+    settings = {k: v for k, v in dataclasses.asdict(train_cfg).items()
+                if k not in ("cache_dir", "device", "variants", "workers")}
     return run_digest(TRAIN_VERSION, dataclasses.asdict(cfg), settings, dataclasses.asdict(dims),
                             dataclasses.asdict(meta), data_version)
 

@@ -13,6 +13,7 @@ M3T reports them (Tab. 3, Tab. A.2, Fig. A.3 "across all test sets"; the same ov
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -24,7 +25,7 @@ from m3t.body.protocol import BodyModel
 from m3t.corpora.base import SPLITS
 from m3t.experiment import ExperimentConfig, section_params
 from m3t.metrics.codebook import codebook_stats, plot_token_histogram, token_counts
-from m3t.runtime import DistributedContext, choose_device
+from m3t.runtime import DistributedContext
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_shard, read_split
 from m3t.shards.schema import FittedClip
@@ -40,6 +41,7 @@ from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruc
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.train import train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
+from m3t.training import run_jobs, worker_split
 
 
 def usable_sequences(group: str, clips: list[FittedClip], rejected: list[dict]) -> list[np.ndarray]:
@@ -131,32 +133,18 @@ def _train_group(job: _GroupJob, cfg: TokenizerTrainConfig, body: BodyModel,
     return report
 
 
-def _group_worker(job: _GroupJob, cfg: TokenizerTrainConfig, body_cfg: BodyConfig, threads: int,
-                  stop_after_epochs: int | None, progress: bool
-                  ) -> tuple[dict[str, float], list[tuple[dict[str, float], int]]]:
-    """A worker process of ``tokenizer_train.group_workers``: its own body model and thread count; the epoch
-    records come back with the report (the parent logs them)."""
-    import torch
-
+def _group_in_worker(cfg: TokenizerTrainConfig, body_cfg: BodyConfig, stop_after_epochs: int | None, progress: bool,
+                     job: _GroupJob, on_epoch: Callable[[dict[str, float], int], None] | None) -> dict[str, float] | None:
+    """One group in a worker process of ``tokenizer_train.group_workers``, with its own body model."""
     from m3t.body.factory import load_body_model
 
-    torch.set_num_threads(threads)
-    records: list[tuple[dict[str, float], int]] = []
-    report = _train_group(job, cfg, load_body_model(body_cfg), lambda r, e: records.append((dict(r), e)),
-                          stop_after_epochs, DistributedContext(), progress)
-    return report, records
+    return _train_group(job, cfg, load_body_model(body_cfg), on_epoch, stop_after_epochs, DistributedContext(),
+                        progress)
 
 
 def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tuple[int, int]:
-    """(worker processes, threads each) for the group runs: ``cfg.group_workers`` processes (at most one per group)
-    sharing this process's threads, or (1, 0) for one group after another in this process. Only on the CPU and
-    without DDP: on a GPU one process already keeps the device busy."""
-    import torch
-
-    workers = min(cfg.group_workers, len(cfg.groups))
-    if workers <= 1 or dist_ctx.world_size > 1 or choose_device(cfg.device).type != "cpu":
-        return 1, 0
-    return workers, max(1, torch.get_num_threads() // workers)
+    """(worker processes, threads each) for the group runs (:func:`m3t.training.worker_split`)."""
+    return worker_split(cfg.group_workers, len(cfg.groups), cfg.device, dist_ctx.world_size)
 
 
 def run_train_tokenizers(
@@ -197,36 +185,21 @@ def run_train_tokenizers(
         usable = {s: [c for c in clips if c.clip.id not in rejected_ids] for s, clips in splits.items()}
         jobs.append(_GroupJob(group, tok_cfg.vae_config(group, input_dim), sequences, usable, version, out_dir))
     workers, threads = group_workers(cfg, dist_ctx)
-    report: dict[str, dict[str, float]] = {}
     if workers > 1:
         if body_cfg is None:
             raise ValueError("tokenizer_train.group_workers > 1 needs the body config (body_cfg) for its worker "
                              "processes to load the body model; pass it, or set group_workers: 1")
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-        from concurrent.futures.process import BrokenProcessPool
-
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_group_worker, job, cfg, body_cfg, threads, stop_after_epochs, progress)
-                       for job in jobs]
-            for job, future in zip(jobs, futures):
-                try:
-                    report[job.group], records = future.result()
-                except BrokenProcessPool as exc:  # killed (out of memory, a signal): finished epochs are saved
-                    raise RuntimeError(f"the worker process training tokenizer group {job.group!r} died ({exc}); "
-                                       "rerun to resume from the last saved epoch, or set "
-                                       "tokenizer_train.group_workers: 1 to train in this process") from exc
-                for record, epoch in records if on_epoch else ():
-                    on_epoch(job.group, record, epoch)
+        run = partial(_group_in_worker, cfg, body_cfg, stop_after_epochs, progress)
     else:
         if body is None:
             raise ValueError("the tokenizers train in this process (group_workers 1, a GPU or DDP): pass the body "
                              "model")
-        for job in jobs:
-            callback = (lambda record, epoch, g=job.group: on_epoch(g, record, epoch)) if on_epoch else None
-            group_metrics = _train_group(job, cfg, body, callback, stop_after_epochs, dist_ctx, progress)
-            if group_metrics is not None:
-                report[job.group] = group_metrics
+        run = lambda job, on_group_epoch: _train_group(
+            job, cfg, body, on_group_epoch, stop_after_epochs, dist_ctx, progress)
+    results = run_jobs(run, jobs, [job.group for job in jobs], workers, threads, on_epoch, "tokenizer group",
+                       "tokenizer_train.group_workers")
+    # other DDP ranks get None
+    report = {job.group: result for job, result in zip(jobs, results) if result is not None}
     if dist_ctx.is_main:
         write_json(out_dir / "metrics.json", report)
         write_jsonl(out_dir / "rejected.jsonl", rejected)
