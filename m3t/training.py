@@ -326,8 +326,9 @@ def worker_split(workers: int, jobs: int, device: str = "auto", world_size: int 
     """(processes, threads each) for ``jobs`` independent trainings (tokenizer groups, SGSA / PT systems, probe
     variants, per-language judges): ``workers`` processes at most, one per job, sharing this process's threads;
     or (1, 0): one after another in this process. Only on the CPU and without DDP (``world_size`` 1): on a GPU
-    one process already keeps the device busy. Small models use two cores far better as two one-thread
-    trainings than as one two-thread training (SGSA / PT: 1.x faster, ``benchmarks/results/stage_workers.json``)."""
+    one process already keeps the device busy. Small models often keep two threads poorly busy: on the 2-core
+    machine the embedded train-tokenizers ran 1.60x, train-sgsa 1.29x and train-slr 1.12x faster in two
+    one-thread processes, while the judges' languages gained nothing (``benchmarks/bench_stage_workers.py``)."""
     from m3t.runtime import choose_device
 
     workers = min(workers, jobs)

@@ -45,7 +45,7 @@ TEXTS = {"ASL-SYN": ["The friend buys a red car.", "My father drinks water", "th
 TINY = BackTranslationConfig(d_model=32, encoder_layers=1, decoder_layers=1, attention_heads=2, ffn_dim=64,
                              dropout=0.0, max_text_tokens=12)
 FAST = BackTranslationTrainConfig(epochs=60, batch_size=4, lr=3e-3, weight_decay=0.0, label_smoothing=0.0,
-                                  eval_every=20, device="cpu", workers=1)
+                                  eval_every=20, device="cpu")
 
 
 def fitted(split: str, language: str = "ASL-SYN", seed: int = 0, label: int | None = None,

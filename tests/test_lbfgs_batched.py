@@ -13,11 +13,10 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from test_fitting import front_camera, smooth_motion
+from test_lockstep import clips  # noqa: F401 - the three signers' clips fixture
 
 from m3t.fitting.fit import FittingConfig, fit_tracks
 from m3t.fitting.lbfgs import lbfgs_rounds, minimise_batched
-from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 
 SCALES = [1.0, 30.0, 0.05, 3.0]  # Rosenbrock problems of very different scales
 ROWS = [3, 5, 2, 4]  # rows (two values each) per problem, plus one per-problem value
@@ -107,19 +106,7 @@ def test_an_error_in_the_evaluation_stops_every_problem_and_is_raised():
         solve_batched([0, 1, 2], 40, fail_at=5)
 
 
-@pytest.fixture(scope="module")
-def clips(body):
-    """Three clips of three signers (identities apart), 8, 6 and 5 frames."""
-    out = []
-    for seed, frames in ((0, 8), (1, 6), (2, 5)):
-        identity = torch.tensor([0.3, 0.5, 0.5, 0.45, 0.6, 0.5]) + 0.1 * seed
-        params = smooth_motion(body, frames=frames, seed=seed)
-        out.append(simulate_track(f"clip-{seed}", params, identity, front_camera(), 25.0, body,
-                                  SimulatedTrackerConfig(seed=seed)))
-    return out
-
-
-def test_fit_tracks_batched_fits_each_clip_as_its_per_clip_fit(body, clips):
+def test_fit_tracks_batched_fits_each_clip_as_its_per_clip_fit(body, clips):  # noqa: F811
     per_clip_cfg = FittingConfig(iterations=30, camera_iterations=10)
     batch = fit_tracks(clips, body, dataclasses.replace(per_clip_cfg, solver="lbfgs_batched"))
     identities = np.stack([r.identity for r in batch])
@@ -134,7 +121,7 @@ def test_fit_tracks_batched_fits_each_clip_as_its_per_clip_fit(body, clips):
         assert len(result.loss_curve) <= per_clip_cfg.iterations
 
 
-def test_fit_tracks_batched_is_deterministic(body, clips):
+def test_fit_tracks_batched_is_deterministic(body, clips):  # noqa: F811
     cfg = FittingConfig(solver="lbfgs_batched", iterations=20, camera_iterations=5)
     a, b = fit_tracks(clips, body, cfg), fit_tracks(clips, body, cfg)
     for x, y in zip(a, b):

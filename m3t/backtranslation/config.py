@@ -67,8 +67,8 @@ class BackTranslationTrainConfig:
     seed: int = 0
     device: str = "auto"
     precision: Literal["fp32", "bf16"] = "fp32"
-    workers: int = 2  # CPU: the languages trained in this many processes sharing the threads (1 = one after
-    # another, as on a GPU)
+    workers: int = 1  # CPU: the languages trained in this many processes sharing the threads; 1 (one after another,
+    # as on a GPU): on the 2-core machine 2 gained nothing (0.97-0.98x, benchmarks/results/stage_workers.json)
 
     def __post_init__(self) -> None:
         for key in ("epochs", "batch_size", "eval_every", "workers"):

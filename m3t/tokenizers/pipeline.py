@@ -13,7 +13,7 @@ M3T reports them (Tab. 3, Tab. A.2, Fig. A.3 "across all test sets"; the same ov
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Callable
 
@@ -133,13 +133,18 @@ def _train_group(job: _GroupJob, cfg: TokenizerTrainConfig, body: BodyModel,
     return report
 
 
-def _group_in_worker(cfg: TokenizerTrainConfig, body_cfg: BodyConfig, stop_after_epochs: int | None, progress: bool,
-                     job: _GroupJob, on_epoch: Callable[[dict[str, float], int], None] | None) -> dict[str, float] | None:
-    """One group in a worker process of ``tokenizer_train.group_workers``, with its own body model."""
+@lru_cache(maxsize=1)
+def _worker_body(body_cfg: BodyConfig) -> BodyModel:
+    """A worker process's body model, loaded once for all the groups it trains."""
     from m3t.body.factory import load_body_model
 
-    return _train_group(job, cfg, load_body_model(body_cfg), on_epoch, stop_after_epochs, DistributedContext(),
-                        progress)
+    return load_body_model(body_cfg)
+
+
+def _group_in_worker(cfg: TokenizerTrainConfig, body_cfg: BodyConfig, stop_after_epochs: int | None, progress: bool,
+                     job: _GroupJob, on_epoch: Callable[[dict[str, float], int], None] | None) -> dict[str, float] | None:
+    """One group in a worker process of ``tokenizer_train.group_workers``, with the worker's body model."""
+    return _train_group(job, cfg, _worker_body(body_cfg), on_epoch, stop_after_epochs, DistributedContext(), progress)
 
 
 def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tuple[int, int]:
