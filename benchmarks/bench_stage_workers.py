@@ -73,12 +73,12 @@ def selection_figures(metrics: dict) -> dict[str, float]:
 
 def run_arm(name: str, stage: Stage, workers: int, work: Path, repeat: int) -> tuple[float, dict[str, float]]:
     params = to_dict(load_params(ROOT / "params.yaml"))
+    pipeline_models = ROOT / params["data"]["models_dir"]
     root = work / f"{name}-workers{workers}-{repeat}"
     params[stage.section].update({stage.setting: workers, "cache_dir": str(root / "cache")})
     params["data"]["models_dir"] = str(root / "models")
     params["experiment"]["enabled"] = False
     root.mkdir(parents=True)
-    pipeline_models = ROOT / load_params(ROOT / "params.yaml").data.models_dir
     for folder in stage.needs:
         if not (pipeline_models / folder).is_dir():
             sys.exit(f"{pipeline_models / folder} not found: {name} needs it (dvc repro {name})")

@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from tiny_pipeline import assert_same_weights
 
 from m3t.backtranslation.checkpoint import load_backtranslation
 from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTrainConfig
@@ -253,8 +254,7 @@ def test_languages_trained_in_worker_processes_equal_one_process_on_their_thread
     for name in ("metrics.json", "languages.json", "skipped.jsonl"):
         assert (one_dir / name).read_bytes() == (two_dir / name).read_bytes(), name
     for name in ("ASL-SYN.pt", "CSL-SYN.pt"):
-        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
-        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+        assert_same_weights(one_dir, two_dir, name)
 
 
 def test_empty_generation_is_scored_zero_and_counted(shards_data, pipeline_models):

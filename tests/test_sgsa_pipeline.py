@@ -24,6 +24,7 @@ from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_set
 from m3t.sgsa.train import losses, train_sgsa
 from m3t.training import worker_split
 from test_tokenizer_training import shards_dir  # noqa: F401 - the tiny fitted shards fixture
+from tiny_pipeline import assert_same_weights
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -256,5 +257,4 @@ def test_systems_trained_in_worker_processes_equal_one_process_on_their_threads(
     assert one_records == two_records  # replayed in system order
     assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
     for name in ("pt.pt", "sgsa.pt"):
-        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
-        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+        assert_same_weights(one_dir, two_dir, name)

@@ -36,6 +36,7 @@ from m3t.tokenizers.checkpoint import save_tokenizer
 from m3t.tokenizers.config import TokenizerConfig
 from m3t.tokenizers.data import GROUPS, clip_sequences, normalisation
 from m3t.tokenizers.vae import MotionTokenizer
+from tiny_pipeline import assert_same_weights
 
 TINY_PROBE = SLRConfig(layers=1, heads=2, ffn_mult=2, dropout=0.0, max_steps=32,
                        trim=TrimConfig(margin=1, min_frames=8))
@@ -291,8 +292,7 @@ def test_variants_trained_in_worker_processes_equal_one_process_on_their_threads
     assert one == two and one_records == two_records and len(one_records) == 2 * TINY_TRAIN.epochs
     assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
     for name in ("full.pt", "no_face.pt"):
-        a, b = (torch.load(d / name, weights_only=False)["state_dict"] for d in (one_dir, two_dir))
-        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+        assert_same_weights(one_dir, two_dir, name)
     assert (two_dir / "confusion_dev_no_face.png").stat().st_size > 0  # drawn in the worker
 
 

@@ -24,6 +24,7 @@ from m3t.tokenizers.pipeline import codebook_report
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
+from tiny_pipeline import assert_same_weights
 from precision_steps import bf16_and_fp32_steps
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -253,8 +254,7 @@ def test_groups_trained_in_worker_processes_equal_one_process_on_their_threads(s
     assert sorted(one_records, key=str) == sorted(two_records, key=str) and len(one_records) == 9
     assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
     for group in one:
-        a, b = (torch.load(d / f"{group}.pt", weights_only=False)["state_dict"] for d in (one_dir, two_dir))
-        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), group
+        assert_same_weights(one_dir, two_dir, f"{group}.pt")
         assert (one_dir / "plots" / f"tokens_{group}.json").read_bytes() == \
             (two_dir / "plots" / f"tokens_{group}.json").read_bytes()
     with pytest.raises(ValueError, match="body_cfg"):  # a worker has to load the body model itself
