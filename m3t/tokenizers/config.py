@@ -81,5 +81,5 @@ class TokenizerTrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     # CPU only: train the groups in this many processes at once, sharing the threads (1 = one group after
     # another on every thread). Small convolutions use two threads poorly: on 2 cores, 2 processes of one thread
-    # finished the embedded stage 1.6x sooner (benchmarks/bench_tokenizer_groups.py).
+    # finished the embedded stage 1.6x sooner (benchmarks/bench_stage_workers.py --stages train-tokenizers).
     group_workers: int = 2
