@@ -12,8 +12,11 @@ keeps its fastest repeat. Also reported: each stage's selection figures (``best_
 arms: float order differs with the thread count, so the arms are not bit-identical (the test suite checks that a
 training in a worker equals the same training on one thread in one process).
 
-    python benchmarks/bench_stage_workers.py [--stages train-sgsa train-slr ...] [--workers 2] [--repeats 1]
-        [--out benchmarks/results/stage_workers.json]
+    python benchmarks/bench_stage_workers.py [--stages train-sgsa train-slr ...] [--workers 2] [--old-workers 1]
+        [--repeats 1] [--out benchmarks/results/stage_workers.json]
+
+``--old-workers N`` compares two worker settings instead (e.g. ``--old-workers 2 --workers 3``: three tokenizer
+groups in two processes, one of them training two groups, against one process per group).
 
 Needs the embedded shards (``dvc repro fit-corpus``) and, for train-slr, the tokenizers (``dvc repro
 train-tokenizers``). The default leaves train-tokenizers out (~8 min for its two arms; its result of 2026-11-27 is
@@ -99,6 +102,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--stages", nargs="+", choices=sorted(STAGES), default=list(DEFAULT))
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--old-workers", type=int, default=1, help="the old arm's setting (1: one process)")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "stage_workers.json"))
     args = ap.parse_args()
@@ -111,7 +115,7 @@ def main() -> None:
             times: dict[str, list[float]] = {"old": [], "new": []}
             figures: dict[str, dict[str, float]] = {}
             for repeat in range(args.repeats):
-                for arm, workers in (("old", 1), ("new", args.workers)):
+                for arm, workers in (("old", args.old_workers), ("new", args.workers)):
                     seconds, figures[arm] = run_arm(name, STAGES[name], workers, Path(tmp), repeat)
                     times[arm].append(seconds)
                     print(f"{name} {arm} ({STAGES[name].setting} {workers}), repeat {repeat}: {seconds:.1f} s",
@@ -125,7 +129,7 @@ def main() -> None:
     old_total = sum(s["old_seconds"] for s in stages.values())
     new_total = sum(s["new_seconds"] for s in stages.values())
     result = {"machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "workers": args.workers, "repeats": args.repeats, "old_seconds": old_total, "new_seconds": new_total,
+              "old_workers": args.old_workers, "workers": args.workers, "repeats": args.repeats, "old_seconds": old_total, "new_seconds": new_total,
               "speedup": old_total / new_total, **{f"speedup {name}": s["speedup"] for name, s in stages.items()},
               "stages": stages}
     write_and_log(result, args.out, "benchmark-stage-workers")

@@ -2,7 +2,7 @@
 
 Arms (alternating, ``--repeats`` times, each keeps its fastest repeat):
   * matmul peak: ``torch.mm`` of two ``--matmul-size`` square fp32 matrices -> GFLOP/s;
-  * training: full train steps (window sampling from the fitted shards + forward + backward + Adam) of a
+  * training: full train steps (window sampling from the fitted shards + forward + backward + fused Adam) of a
     width ``--width`` tokenizer -> achieved GFLOP/s, counting 2 * C_in * C_out * k * L_out per Conv1d in
     the forward pass and twice that for the backward pass (input and weight gradients);
   * data loading alone: batches/s of the window sampler, against the steps/s training consumes.
@@ -28,7 +28,7 @@ from m3t.shards.io import read_shard  # noqa: E402
 from m3t.tokenizers.data import WindowSampler, clip_sequences  # noqa: E402
 from m3t.tokenizers.config import TokenizerConfig  # noqa: E402
 from m3t.tokenizers.train import train_step  # noqa: E402
-from m3t.training import lr_factor  # noqa: E402
+from m3t.training import adam, lr_factor  # noqa: E402
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters  # noqa: E402
 from report import write_and_log  # noqa: E402
 
@@ -75,7 +75,7 @@ def main() -> None:
     seqs = [s for c in read_shard(args.shards).clips for s in clip_sequences(c.params, args.group, c.clip.id)]
     sampler = WindowSampler(seqs, args.window, args.batch, per_sequence=64, seed=0)
     model = MotionTokenizer(TokenizerConfig(width=args.width, depth=args.depth).vae_config(args.group, seqs[0].shape[1]))
-    optim = torch.optim.Adam(model.parameters(), lr=1e-4)
+    optim = adam(model.parameters(), "cpu", lr=1e-4)
     sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, 10, 1000, 0.01))
     step_flops = 3.0 * conv_flops(model, torch.zeros(args.batch, args.window, seqs[0].shape[1]))
 

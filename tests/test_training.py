@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from m3t.training import EpochTail, Selection, optimizer_step, read_checkpoint, save_checkpoint, warmup_cosine
+from m3t.training import (
+    EpochTail,
+    Selection,
+    adam,
+    optimizer_step,
+    read_checkpoint,
+    save_checkpoint,
+    warmup_cosine,
+)
 
 
 def lrs(scheduler, steps: int) -> list[float]:
@@ -24,6 +32,34 @@ def lrs(scheduler, steps: int) -> list[float]:
 
 def sgd(lr: float = 1.0) -> torch.optim.Optimizer:
     return torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=lr)
+
+
+@pytest.mark.parametrize("decoupled", [False, True])
+def test_adam_runs_the_fused_kernel_on_the_cpu_with_the_update_of_torchs_default_adam(decoupled):
+    """Every trainer's optimiser: fused where the device has the kernel, the same update as torch's default
+    (foreach) Adam / AdamW with the same options to float rounding, options passed through."""
+    torch.manual_seed(0)
+    start = [torch.randn(7, 5), torch.randn(5)]
+    options = {"lr": 1e-2, "betas": (0.8, 0.95), "weight_decay": 0.1}
+    runs = {}
+    for fused in (False, True):
+        params = [p.clone().requires_grad_(True) for p in start]
+        reference = torch.optim.AdamW if decoupled else torch.optim.Adam
+        optim = adam(params, "cpu", decoupled=decoupled, **options) if fused else reference(params, **options)
+        assert isinstance(optim, reference) and optim.defaults["fused"] is (True if fused else None)
+        assert optim.defaults["betas"] == (0.8, 0.95) and optim.defaults["weight_decay"] == 0.1
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(20):
+            for p in params:
+                p.grad = torch.randn(p.shape, generator=generator)
+            optim.step()
+        runs[fused] = [p.detach() for p in params]
+    moved = max(float((a - b).abs().max()) for a, b in zip(runs[True], start))
+    assert moved > 0.05  # the steps did something
+    for a, b in zip(runs[False], runs[True]):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    # a device without the fused kernel gets torch's default implementation
+    assert adam([torch.zeros(2, requires_grad=True)], "mps", lr=1e-3).defaults["fused"] is None
 
 
 @pytest.mark.parametrize("unit, warmup", [("epochs", 2), ("steps", 20)])

@@ -37,7 +37,7 @@ from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.metrics.text import slt_translation_metrics
 from m3t.runtime import autocast, choose_device
-from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, optimizer_step, run_digest
+from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, adam, optimizer_step, run_digest
 
 TRAIN_VERSION = "backtranslation-v1"  # part of the resume key: bump when older training state becomes invalid
 DECODE_ONLY = ("beam_size", "length_penalty", "languages")  # model-section keys a trained model does not depend on
@@ -112,7 +112,7 @@ def train_backtranslation(
     model = SignToText(model_cfg, BackTranslationDims(spec.dim, len(corpus.text_vocab), gloss_classes))
     model.set_feature_statistics(*(torch.as_tensor(a) for a in feature_statistics(corpus.train)))
     model.to(device)
-    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    optim = adam(model.parameters(), device, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     schedule = PlateauSchedule(optim, "max", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
 

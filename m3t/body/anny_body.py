@@ -85,7 +85,10 @@ def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch
             torch.set_num_threads(1)
             try:
                 with fast_target_reader():
-                    model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref")
+                    # skinning "lbs": this class skins itself (below); Anny's default probes NVIDIA Warp for its
+                    # skinning, which costs every process ~0.3 s of import and initialisation and a banner
+                    model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref",
+                                      skinning_method="lbs")
             finally:
                 torch.set_num_threads(threads)
             _MODELS[key] = model.to(torch.float32)

@@ -31,7 +31,7 @@ from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch, Sample, collate
 from m3t.sgsa.evaluate import SELECTION_METRIC, ProductionEvaluator
 from m3t.sgsa.model import SGSAProduction
-from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, optimizer_step, run_digest
+from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, adam, optimizer_step, run_digest
 
 TRAIN_VERSION = "sgsa-v1"  # part of the resume key: bump when older training state becomes invalid
 
@@ -84,7 +84,7 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
     device = choose_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model = build_model(model_cfg, graph, text_vocab, gloss_vocab).to(device)
-    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    optim = adam(model.parameters(), device, lr=cfg.lr)
     schedule = PlateauSchedule(optim, "min", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
     dev = list(dev)[: cfg.eval_max_clips] if cfg.eval_max_clips > 0 else list(dev)

@@ -25,7 +25,7 @@ from m3t.slr.config import SLRConfig, SLRTrainConfig
 from m3t.slr.evaluate import topk_hits
 from m3t.slr.features import Example, variant_streams
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest, warmup_cosine
+from m3t.training import EpochTail, Selection, TrainRun, adam, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "slr-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -119,7 +119,7 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
     dims = ProbeDims(width, len(meta.classes), variant_streams(meta.variant))
     model = SLRProbe(cfg, dims).to(device)
     per_epoch = -(-len(train) // train_cfg.batch_size)
-    optim = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
+    optim = adam(model.parameters(), device, lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     scheduler = warmup_cosine(optim, train_cfg.epochs, per_epoch, train_cfg.warmup_epochs, "epochs", train_cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(train_cfg).items() if isinstance(v, (bool, int, float, str))}
     evaluate = None

@@ -34,7 +34,7 @@ from m3t.smlm.data import (
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
-from m3t.training import EpochTail, Selection, TrainRun, optimizer_step, run_digest, warmup_cosine
+from m3t.training import EpochTail, Selection, TrainRun, adam, optimizer_step, run_digest, warmup_cosine
 
 TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -135,9 +135,7 @@ def train_smlm(
     per_epoch = steps_per_epoch(len(train), cfg.batch_size, dist_ctx.world_size)
     if per_epoch == 0:
         raise ValueError(f"{len(train)} examples make no full batch for {dist_ctx.world_size} ranks; lower batch_size")
-    # fused: one pass over each parameter instead of ~10 elementwise kernels (the unfused step took a fifth of a
-    # CPU training step); the same AdamW update, equal up to float rounding
-    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
+    optim = adam(model.parameters(), device, decoupled=True, lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = warmup_cosine(optim, cfg.epochs, per_epoch, cfg.warmup_steps, "steps", cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
     tail = EpochTail(

@@ -28,6 +28,7 @@ from m3t.tokenizers.vae import MotionTokenizer
 from m3t.training import (
     EpochTail,
     Selection,
+    adam,
     optimizer_step,
     run_digest,
     warmup_cosine,
@@ -108,7 +109,7 @@ def train_tokenizer(
     sampler = WindowSampler(train_sequences, cfg.window, cfg.batch_size, cfg.windows_per_clip, cfg.seed,
                             dist_ctx.rank, dist_ctx.world_size)
     steps_per_epoch = len(sampler)
-    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    optim = adam(model.parameters(), device, lr=cfg.lr)
     scheduler = warmup_cosine(optim, cfg.epochs, steps_per_epoch, cfg.warmup_epochs, "epochs", cfg.min_lr)
     tail = EpochTail(
         cfg.epochs, cfg.eval_every,
