@@ -34,6 +34,40 @@ class DistributedContext:
         return self.rank == 0
 
 
+def spawn_pool(workers: int, threads: int = 0):
+    """A ``concurrent.futures.ProcessPoolExecutor`` of ``workers`` spawned processes (never forked: a fork
+    inherits torch's thread pool and the locks of a process that already computed), each with ``threads``
+    intra-op torch threads (0: torch's default) and a watcher that ends the worker when this process is gone.
+    ``kill -9`` of a stage gives its pool no chance to stop the workers; an orphan would go on fitting or
+    training on the cores the rerun needs (and, for a trainer, hold the run's lock against it). The one pool
+    of the project's worker processes: fit-corpus's local executor and the trainers' independent jobs."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                               initargs=(os.getpid(), threads))
+
+
+def _start_worker(parent: int, threads: int) -> None:
+    """A :func:`spawn_pool` worker's initialiser: its thread count, and the watcher of its parent."""
+    import threading
+
+    if threads and torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="exit-with-parent").start()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Poll (each second) whether the process that started this worker is still its parent; exit when not."""
+    import os
+    import time
+
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
+
+
 def distributed_context(device_name: str = "auto") -> DistributedContext:
     """Join the process group described by ``torchrun``'s environment (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_*);
     a single-process context when those are absent."""

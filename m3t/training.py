@@ -347,21 +347,6 @@ def worker_split(workers: int, jobs: int, device: str = "auto", world_size: int 
     return workers, max(1, torch.get_num_threads() // workers)
 
 
-def _exit_with_parent(parent: int) -> None:
-    """Poll (each second) whether the process that started this worker still exists; exit when it is gone."""
-    while os.getppid() == parent:
-        time.sleep(1.0)
-    os._exit(1)
-
-
-def _watch_parent(parent: int) -> None:
-    """A worker's initialiser: it ends itself when the stage's process is killed (``kill -9`` gives the pool no
-    chance to stop it): an orphan would go on training and hold the run's lock against the rerun."""
-    import threading
-
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-
-
 def _job_in_worker(run: Callable[[Any, EpochCallback], Any], job: Any, threads: int
                    ) -> tuple[Any, list[tuple[dict[str, float], int]]]:
     """One job in a worker process, on ``threads`` threads; its epoch records come back with its result."""
@@ -388,13 +373,12 @@ def run_jobs(run: Callable[[Any, EpochCallback | None], Any], jobs: list[Any], n
     if processes <= 1:
         return [run(job, None if on_epoch is None else lambda record, epoch, n=name: on_epoch(n, record, epoch))
                 for job, name in zip(jobs, names)]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
+    from m3t.runtime import spawn_pool
+
     results = []
-    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_watch_parent, initargs=(os.getpid(),)) as pool:
+    with spawn_pool(processes) as pool:  # a worker whose stage is killed ends itself
         futures = [pool.submit(_job_in_worker, run, job, threads) for job in jobs]
         for name, future in zip(names, futures):
             try:

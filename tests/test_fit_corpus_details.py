@@ -626,14 +626,16 @@ def test_the_local_process_pool_spawns_single_threaded_workers():
     fitted; each worker runs with one intra-op thread."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from m3t.fitting.cluster import one_thread, open_executor, process_pool
+    from m3t.fitting.cluster import open_executor, process_pool
     from m3t.fitting.config import FitCorpusConfig
 
     assert process_pool(1) is None and process_pool(0) is None  # one worker: clips run in this process
+    torch.set_num_threads(2)  # what the workers must not inherit
     pool = process_pool(3)
     try:
         assert isinstance(pool, ProcessPoolExecutor) and pool._max_workers == 3
-        assert pool._mp_context.get_start_method() == "spawn" and pool._initializer is one_thread
+        assert pool._mp_context.get_start_method() == "spawn"
+        assert pool.submit(torch.get_num_threads).result(timeout=120) == 1
     finally:
         pool.shutdown()
     with open_executor(FitCorpusConfig(executor="local", workers=1)) as executor:

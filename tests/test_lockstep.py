@@ -73,6 +73,30 @@ def test_a_problem_in_a_batch_ends_where_it_ends_alone():
         assert np.allclose(curves[p], alone_curves[0], rtol=1e-5)
 
 
+@pytest.mark.parametrize("owner", [[0, 0, 0, 1, 1, 3, 3, 3, 3], [3, 0, 1, 3, 0, 3, 1, 0, 3]],
+                         ids=["grouped", "interleaved"])
+def test_per_problem_sums_add_each_problems_own_elements_in_order(owner):
+    """``dot`` sums a problem's rows in row order, whatever the other problems hold (here a problem with no row
+    and a neighbour's inf): the bits a problem's own elements give, in a batch as alone."""
+    owner = torch.tensor(owner)
+    generator = torch.Generator().manual_seed(0)
+    problems, width = 4, 3
+    x = torch.zeros(owner.shape[0] * width + problems * 2)
+    solver = LockstepLBFGS(x, owner, width, problems, 10)
+    a = torch.randn(x.shape, generator=generator) * 10 ** torch.randint(-3, 4, x.shape, generator=generator)
+    b = torch.randn(x.shape, generator=generator)
+    a[1 * width] = float("inf")  # a row of problem owner[1]
+    got = solver.dot(a, b)
+    prod = (a * b)[:owner.shape[0] * width].view(-1, width).sum(1)
+    for p in range(problems):
+        expected = (a * b)[owner.shape[0] * width:].view(problems, -1)[p].sum()
+        rows = torch.zeros(())
+        for r in torch.nonzero(owner == p).flatten().tolist():
+            rows = rows + prod[r]
+        assert torch.equal(got[p], expected + rows), p
+    assert torch.isinf(got[int(owner[1])]) and torch.isfinite(got[[p for p in range(problems) if p != owner[1]]]).all()
+
+
 def test_accepted_points_never_increase_a_problems_loss():
     x, owner, n, loss = rosenbrock_batch([0, 1, 2])
     solver = LockstepLBFGS(x, owner, 2, n, 100)

@@ -280,9 +280,19 @@ def _job_sleeps(job: str, on_epoch) -> None:
     time.sleep(120)
 
 
-def test_a_worker_ends_itself_when_the_stage_process_is_killed(tmp_path):
+STAGE_POOLS = {  # a stage whose worker writes its pid to the file {pid!r} and sleeps
+    "trainer jobs": "from m3t.training import run_jobs; "
+                    "run_jobs(t._job_sleeps, [{pid!r}, {pid!r}], ['a', 'b'], processes=2, threads=1)",
+    "fit-corpus pool": "from m3t.fitting.cluster import process_pool; "
+                       "pool = process_pool(2); pool.submit(t._job_sleeps, {pid!r}, None).result()",
+}
+
+
+@pytest.mark.parametrize("pool", sorted(STAGE_POOLS))
+def test_a_worker_ends_itself_when_the_stage_process_is_killed(tmp_path, pool):
     """``kill -9`` of a stage leaves its pool no chance to stop the workers; each notices its parent is gone and
-    exits (an orphan would go on training and hold the run's lock against the rerun)."""
+    exits (an orphan would go on fitting or training on the cores the rerun needs, and a trainer's would hold
+    the run's lock against it). Both of the project's pools: the trainers' jobs and fit-corpus's executor."""
     import os
     import signal
     import subprocess
@@ -291,8 +301,7 @@ def test_a_worker_ends_itself_when_the_stage_process_is_killed(tmp_path):
     from pathlib import Path
 
     pid_file = tmp_path / "worker.pid"
-    code = ("import test_training as t; from m3t.training import run_jobs; "
-            f"run_jobs(t._job_sleeps, [{str(pid_file)!r}, {str(pid_file)!r}], ['a', 'b'], processes=2, threads=1)")
+    code = "import test_training as t; " + STAGE_POOLS[pool].format(pid=str(pid_file))
     stage = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).parent)
     try:
         deadline = time.monotonic() + 60

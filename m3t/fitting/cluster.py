@@ -54,13 +54,13 @@ def one_thread() -> None:
 
 
 def process_pool(workers: int) -> Executor | None:
-    """``workers`` spawned processes (None for one: clips then run in this process)."""
+    """``workers`` spawned one-thread processes that end themselves when this process is killed
+    (:func:`m3t.runtime.spawn_pool`); None for one worker: clips then run in this process."""
     if workers <= 1:
         return None
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+    from m3t.runtime import spawn_pool
 
-    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=one_thread)
+    return spawn_pool(workers, threads=1)
 
 
 def for_workers(job: FitJob) -> FitJob:

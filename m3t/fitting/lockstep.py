@@ -37,8 +37,13 @@ class LockstepLBFGS:
 
     ``x`` holds a row block then a problem block: its first ``R x W`` elements are R rows of W values, row r
     belonging to problem ``row_owner[r]`` (per-frame streams side by side, a frame per row); the rest are C rows,
-    one per problem (per-clip values: camera, identity). Per-problem sums are then a row sum and one product with
-    a (C, R) membership matrix, and per-problem scaling a broadcast: a few passes over ``x`` whatever C is.
+    one per problem (per-clip values: camera, identity). Per-problem sums are then a row sum and a segment sum
+    over the rows each problem owns, and per-problem scaling a broadcast: a few passes over ``x`` whatever C is.
+    A problem's sums add its own elements in its own order, so its trajectory is the same bits in any batch (a
+    product with a 0/1 membership matrix, the earlier form, let the batch's layout choose the BLAS kernel's
+    summation order: on an AVX-512 machine a problem solved in a batch drifted from the same problem solved
+    alone by 1e-2 within 60 evaluations). Rows need not be grouped by problem; grouped rows take the one-pass
+    segment reduction, others an ordered ``index_add`` (serial on the CPU).
     """
 
     def __init__(self, x: torch.Tensor, row_owner: torch.Tensor, width: int, problems: int, history: int):
@@ -47,8 +52,9 @@ class LockstepLBFGS:
         self.split = row_owner.shape[0] * width
         if (x.shape[0] - self.split) % problems:
             raise ValueError(f"{x.shape[0] - self.split} per-problem values do not split into {problems} problems")
-        self.membership = torch.zeros(problems, row_owner.shape[0], dtype=x.dtype, device=x.device)
-        self.membership[row_owner, torch.arange(row_owner.shape[0], device=x.device)] = 1.0  # (C, R)
+        grouped = bool((row_owner[1:] >= row_owner[:-1]).all()) if row_owner.numel() else True
+        # rows per problem (C,) when every problem's rows are consecutive, in problem order; else None
+        self.segments = torch.bincount(row_owner, minlength=problems) if grouped else None
         self.slots: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (s (N,), y (N,), rho (C,))
 
     def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -56,7 +62,11 @@ class LockstepLBFGS:
         prod = a * b
         out = prod[self.split:].view(self.n, -1).sum(1)
         if self.split:
-            out = out + self.membership @ prod[:self.split].view(-1, self.width).sum(1)
+            rows = prod[:self.split].view(-1, self.width).sum(1)  # (R,)
+            if self.segments is not None:
+                out = out + torch.segment_reduce(rows, "sum", lengths=self.segments)
+            else:
+                out = out + torch.zeros_like(out).index_add_(0, self.row_owner, rows)
         return out
 
     def scaled(self, t: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
