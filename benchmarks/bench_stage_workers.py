@@ -129,7 +129,8 @@ def main() -> None:
     old_total = sum(s["old_seconds"] for s in stages.values())
     new_total = sum(s["new_seconds"] for s in stages.values())
     result = {"machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "old_workers": args.old_workers, "workers": args.workers, "repeats": args.repeats, "old_seconds": old_total, "new_seconds": new_total,
+              "old_workers": args.old_workers, "workers": args.workers, "repeats": args.repeats,
+              "old_seconds": old_total, "new_seconds": new_total,
               "speedup": old_total / new_total, **{f"speedup {name}": s["speedup"] for name, s in stages.items()},
               "stages": stages}
     write_and_log(result, args.out, "benchmark-stage-workers")

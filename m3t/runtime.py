@@ -1,7 +1,13 @@
-"""Device and dtype choice: the one place that decides where tensors live."""
+"""Where work runs: device and dtype choice (the one place that decides where tensors live), the DDP context,
+the threads of a process and the one pool of worker processes."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+if TYPE_CHECKING:
+    from concurrent.futures import ProcessPoolExecutor
 
 
 def choose_device(name: str = "auto") -> torch.device:
@@ -34,7 +40,7 @@ class DistributedContext:
         return self.rank == 0
 
 
-def spawn_pool(workers: int, threads: int = 0):
+def spawn_pool(workers: int, threads: int = 0) -> ProcessPoolExecutor:
     """A ``concurrent.futures.ProcessPoolExecutor`` of ``workers`` spawned processes (never forked: a fork
     inherits torch's thread pool and the locks of a process that already computed), each with ``threads``
     intra-op torch threads (0: torch's default) and a watcher that ends the worker when this process is gone.
@@ -49,12 +55,18 @@ def spawn_pool(workers: int, threads: int = 0):
                                initargs=(os.getpid(), threads))
 
 
+def use_threads(threads: int) -> None:
+    """``threads`` intra-op torch threads in this process (0: leave torch's count); an equal count is left as it
+    is rather than set again."""
+    if threads and torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
 def _start_worker(parent: int, threads: int) -> None:
     """A :func:`spawn_pool` worker's initialiser: its thread count, and the watcher of its parent."""
     import threading
 
-    if threads and torch.get_num_threads() != threads:
-        torch.set_num_threads(threads)
+    use_threads(threads)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="exit-with-parent").start()
 
 

@@ -347,10 +347,9 @@ def worker_split(workers: int, jobs: int, device: str = "auto", world_size: int 
     return workers, max(1, torch.get_num_threads() // workers)
 
 
-def _job_in_worker(run: Callable[[Any, EpochCallback], Any], job: Any, threads: int
+def _job_in_worker(run: Callable[[Any, EpochCallback], Any], job: Any
                    ) -> tuple[Any, list[tuple[dict[str, float], int]]]:
-    """One job in a worker process, on ``threads`` threads; its epoch records come back with its result."""
-    torch.set_num_threads(threads)
+    """One job in a worker process (its threads set by the pool); its epoch records come back with its result."""
     records: list[tuple[dict[str, float], int]] = []
     result = run(job, lambda record, epoch: records.append((dict(record), epoch)))
     return result, records
@@ -378,8 +377,8 @@ def run_jobs(run: Callable[[Any, EpochCallback | None], Any], jobs: list[Any], n
     from m3t.runtime import spawn_pool
 
     results = []
-    with spawn_pool(processes) as pool:  # a worker whose stage is killed ends itself
-        futures = [pool.submit(_job_in_worker, run, job, threads) for job in jobs]
+    with spawn_pool(processes, threads) as pool:  # a worker whose stage is killed ends itself
+        futures = [pool.submit(_job_in_worker, run, job) for job in jobs]
         for name, future in zip(names, futures):
             try:
                 result, records = future.result()

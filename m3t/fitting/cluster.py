@@ -47,10 +47,9 @@ class SchedulerLost(RuntimeError):
 
 def one_thread() -> None:
     """One intra-op torch thread in this process: one worker process per core, more threads would oversubscribe."""
-    import torch
+    from m3t.runtime import use_threads
 
-    if torch.get_num_threads() != 1:
-        torch.set_num_threads(1)
+    use_threads(1)
 
 
 def process_pool(workers: int) -> Executor | None:
