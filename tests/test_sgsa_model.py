@@ -11,7 +11,9 @@ import torch
 from torch import nn
 
 from m3t.backtranslation.model import sinusoid_table
-from m3t.sgsa.config import SGSAConfig
+from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
+from m3t.sgsa.data import Batch
+from m3t.sgsa.train import losses
 from m3t.sgsa.model import SGSADims, SGSAProduction, SkeletalGraphSelfAttention
 
 S = 7  # two joints of 3 coordinates + the counter
@@ -45,24 +47,35 @@ def tiny(decoder_layers: int = 2, **overrides) -> SGSAProduction:
     return SGSAProduction(cfg, SGSADims(S, text_vocab=12, gloss_vocab=5), toy_adjacency())
 
 
-def toy_clip(frames: int, phase: float) -> torch.Tensor:
-    """(U, S): smooth coordinates and the counter (t + 1) / U."""
+def chain_adjacency(joints: int) -> torch.Tensor:
+    """A* of a chain of ``joints`` 3-coordinate joints (joint i connected to i +- 1) and a global counter: width
+    3 x joints + 1."""
+    s = 3 * joints + 1
+    joint = [i // 3 for i in range(s)]  # the counter is joint ``joints``
+    a = torch.tensor([[float(joint[i] != joint[j] and (abs(joint[i] - joint[j]) == 1 or joints in (joint[i], joint[j])))
+                       for j in range(s)] for i in range(s)])
+    same = torch.tensor([[float(joint[i] == joint[j]) for j in range(s)] for i in range(s)])
+    return a / a.sum(1, keepdim=True) + same
+
+
+def toy_clip(frames: int, phase: float, width: int = S) -> torch.Tensor:
+    """(U, width): smooth coordinates and the counter (t + 1) / U."""
     t = torch.arange(frames, dtype=torch.float32)[:, None]
-    coords = 0.5 * torch.sin(0.4 * t + phase + torch.arange(S - 1, dtype=torch.float32))
+    coords = 0.5 * torch.sin(0.4 * t + phase + torch.arange(width - 1, dtype=torch.float32))
     return torch.cat([coords, (t + 1) / frames], dim=1)
 
 
 def batch(texts: list[list[int]], clips: list[torch.Tensor]):
     """Padded text ids / mask (B, K), frames_in / targets (B, U, S) and frame mask (B, U), the training convention:
     frames_in[:, 0] = 0, frames_in[:, t] = target[:, t - 1]."""
-    k, u = max(map(len, texts)), max(len(c) for c in clips)
+    k, u, s = max(map(len, texts)), max(len(c) for c in clips), clips[0].shape[1]
     ids = torch.zeros(len(texts), k, dtype=torch.long)
-    target = torch.zeros(len(clips), u, S)
+    target = torch.zeros(len(clips), u, s)
     frame_mask = torch.zeros(len(clips), u, dtype=torch.bool)
     for b, (text, clip) in enumerate(zip(texts, clips)):
         ids[b, :len(text)] = torch.tensor(text)
         target[b, :len(clip)], frame_mask[b, :len(clip)] = clip, True
-    frames_in = torch.cat([torch.zeros(len(clips), 1, S), target[:, :-1]], dim=1)
+    frames_in = torch.cat([torch.zeros(len(clips), 1, s), target[:, :-1]], dim=1)
     return ids, ids != 0, frames_in, target, frame_mask
 
 
@@ -72,12 +85,19 @@ def masked_mse(model: SGSAProduction, data) -> torch.Tensor:
     return ((pred - target) ** 2)[frame_mask].mean()
 
 
-def fit(model: SGSAProduction, data, steps: int, lr: float = 3e-3) -> None:
+def fit(model: SGSAProduction, data, steps: int, lr: float = 3e-3, counter_weight: float = 0.0,
+        noise: float = 0.0) -> None:
+    """Adam on the training loss of :func:`m3t.sgsa.train.losses` (no gloss; ``noise``: the std of the Gaussian
+    noise augmentation on every coordinate of the frames fed in)."""
+    ids, text_mask, frames_in, target, frame_mask = data
+    no_gloss = torch.zeros(len(ids), 0, dtype=torch.long)
+    train_batch = Batch(ids, text_mask, frames_in, target, frame_mask, no_gloss, torch.zeros(len(ids), dtype=torch.long))
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     model.train()
     for _ in range(steps):
         optimiser.zero_grad()
-        masked_mse(model, data).backward()
+        std = torch.full((target.shape[-1],), noise) if noise else None
+        losses(model, train_batch, 0.0, std, counter_weight)[0]["loss"].backward()
         optimiser.step()
     model.eval()
 
@@ -164,10 +184,13 @@ def test_pt_decoder_equals_torch_transformer_decoder():
     cfg = model.cfg
     assert model.memory_projection is None  # E == W
     w = cfg.standard_width
+    # PT's JoeyNMT decoder: pre-norm layers and a final LayerNorm
     reference = nn.TransformerDecoder(nn.TransformerDecoderLayer(w, cfg.decoder_heads, cfg.standard_ffn, 0.0,
-                                                                 batch_first=True, norm_first=False),
-                                      cfg.standard_layers).eval()
+                                                                 batch_first=True, norm_first=True),
+                                      cfg.standard_layers, norm=nn.LayerNorm(w)).eval()
     with torch.no_grad():
+        reference.norm.weight.copy_(model.final_norm.weight)
+        reference.norm.bias.copy_(model.final_norm.bias)
         for ours, ref in zip(model.layers, reference.layers):
             for attn, theirs in ((ours.self_attn, ref.self_attn), (ours.cross_attn, ref.multihead_attn)):
                 theirs.in_proj_weight.copy_(torch.cat([attn.q.weight, attn.k.weight, attn.v.weight]))
@@ -188,10 +211,11 @@ def test_pt_decoder_equals_torch_transformer_decoder():
         mine = x
         for layer in model.layers:
             mine = layer(mine, memory, ~causal[None], text_mask[:, None, :])[0]
+        mine = model.final_norm(mine)
         theirs = reference(x, memory, tgt_mask=causal, memory_key_padding_mask=~text_mask)
         torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=0)
 
-        # the whole decode: frame embedding + sinusoidal positions -> the layers -> Linear(W, S)
+        # the whole decode: frame embedding + sinusoidal positions -> the layers -> final LayerNorm -> Linear(W, S)
         frames_in = torch.randn(2, u, S)
         embedded = model.frame_embedding(frames_in) + sinusoid_table(u, w)
         expected = model.output(reference(embedded, memory, tgt_mask=causal, memory_key_padding_mask=~text_mask))
@@ -201,38 +225,37 @@ def test_pt_decoder_equals_torch_transformer_decoder():
 # ---------------------------------------------------------------------------------------------- 4. paper size
 def test_paper_preset_parameter_count():
     # S = 291 (290 joint coordinates + counter), encoder 2 x 4 heads x 256 (ffn 1024), decoder 5 SGSA layers x 4 heads.
-    # Measured: decoder (5 SGSA layers + output Linear) 9,142,432 -- 1.6 % above the paper's "9M"; the whole model
-    # with a PHOENIX14T-sized vocabulary (2,887 words, 1,066 glosses + blank) 11,735,755 (encoder 1,580,032,
-    # word embedding 739,072, gloss head 274,219), i.e. 30 % above 9M: the "9M" matches the decoder alone.
+    # Measured: decoder (frame embedding S -> S, 5 SGSA layers, final LayerNorm, output Linear) 9,227,986 -- 2.5 %
+    # above the paper's "9M"; the whole model with a PHOENIX14T-sized vocabulary (2,887 words, 1,066 glosses +
+    # blank) 11,821,309 (encoder 1,580,032, word embedding 739,072, gloss head 274,219), i.e. 31 % above 9M: the
+    # "9M" matches the decoder alone.
     cfg = SGSAConfig(encoder_layers=2, encoder_heads=4, encoder_width=256, encoder_ffn=1024, decoder_layers=5,
                      decoder_heads=4, temporal_adjacency=1)  # sizes pinned: the config's defaults are CPU-small
     model = SGSAProduction(cfg, SGSADims(291, text_vocab=2887, gloss_vocab=1067), torch.eye(291))
     parts = {name: sum(p.numel() for key, p in model.named_parameters() if key.split(".")[0] == name)
-             for name in ("text_embedding", "encoder", "gloss_head", "layers", "output")}
-    decoder = parts["layers"] + parts["output"]
+             for name in ("text_embedding", "encoder", "gloss_head", "frame_embedding", "layers", "final_norm", "output")}
+    decoder = parts["frame_embedding"] + parts["layers"] + parts["final_norm"] + parts["output"]
     total = sum(p.numel() for p in model.parameters() if p.requires_grad)
     print(parts, "decoder", decoder, "total", total)
     assert sum(parts.values()) == total
     assert abs(decoder - 9.0e6) / 9.0e6 < 0.05
-    assert decoder == 9_142_432 and total == 11_735_755
+    assert decoder == 9_227_986 and total == 11_821_309
 
 
 # ---------------------------------------------------------------------------------------------- 5. counter decoding
 TEXT = [3, 4, 5, 6]
 
 
-def overfit_one_clip(decoder_layers: int, steps: int) -> SGSAProduction:
-    torch.manual_seed(0)
+def overfit_one_clip(decoder_layers: int, steps: int, seed: int = 0) -> SGSAProduction:
+    """A tiny model overfit on one 12-frame clip with the training loss's default counter weight."""
+    torch.manual_seed(seed)
     model = tiny(decoder_layers=decoder_layers, temporal_adjacency=1)
-    fit(model, batch([TEXT], [toy_clip(12, 0.0)]), steps=steps)
+    fit(model, batch([TEXT], [toy_clip(12, 0.0)]), steps=steps, counter_weight=SGSATrainConfig().counter_weight)
     return model
 
 
 @pytest.fixture(scope="module")
 def trained_pt() -> SGSAProduction:
-    """A tiny PT model overfit on one 12-frame clip. The stopping test runs on PT: the tiny SGSA (a post-norm
-    stream only S = 7 wide) fits the counter slowly, and its free-running stop after a few hundred steps depends on
-    the seed (about half of them stop at 12); generate is the same code for both systems."""
     return overfit_one_clip(0, steps=500)
 
 
@@ -255,13 +278,37 @@ def test_counter_decoding_stops_at_the_trained_length(trained_pt):
     assert trained_pt.training is False
 
 
+@pytest.mark.parametrize("decoder_layers", [2, 0], ids=["SGSA", "PT"])
+def test_counter_decoding_stops_at_the_trained_length_whatever_the_seed(decoder_layers):
+    """Trained with the default counter weight, the counter ends free-running generation at the true length on at
+    least 7 of 8 seeds. The skeleton has 5 joints (S = 16, the tiny PT's width): an SGSA stream is S wide, and at
+    S = 7 (2 joints) its feed-forward is 7 -> 7 -> 7, too narrow to reproduce a clip free-running on every seed
+    (5-7 of 8 stopped at 12 after 300-1000 steps). With the papers' plain MSE and the first SGSA decoder (post-norm
+    layers fed raw frames) about half of the seeds stopped."""
+    joints, frames = 5, 12
+    width = 3 * joints + 1
+    cfg = SGSAConfig(**{**TINY, "decoder_layers": decoder_layers, "temporal_adjacency": 1})
+    data = batch([TEXT], [toy_clip(frames, 0.0, width)])
+    ids = torch.tensor([TEXT])
+    lengths = []
+    for seed in range(8):
+        torch.manual_seed(seed)
+        model = SGSAProduction(cfg, SGSADims(width, text_vocab=12, gloss_vocab=5),
+                               chain_adjacency(joints) if decoder_layers else None)
+        fit(model, data, steps=400, counter_weight=SGSATrainConfig().counter_weight)
+        lengths.append(len(model.generate(ids, ids != 0, max_frames=30)[0]))
+    assert sum(n == frames for n in lengths) >= 7, lengths
+
+
 def test_stopping_rule_on_scripted_counters(monkeypatch):
     """generate with a scripted decoder: the memory is the text ids, the predicted counter of frame t (1-based) is
     read from a script per text, coordinate 0 counts the frames fed in (so feeding back is visible)."""
-    model = tiny()
-    threshold = [1.0 - 0.5 / t for t in range(1, 31)]
+    model = tiny(min_frames=3, stop_tolerance=0.1)
+    # 1 - max(0.5 / t, 0.1): 0.5, 0.75, 0.833, 0.875, 0.9, 0.9, ... (the tolerance from t = 5 on)
+    threshold = [1.0 - max(0.5 / t, 0.1) for t in range(1, 31)]
+    assert threshold[5] == threshold[20] == pytest.approx(0.9)
     script = {3: [threshold[t] - 1e-3 for t in range(6)] + [threshold[6] + 1e-4] + [1.0] * 23,  # stops at t = 7
-              4: [0.5001] + [0.0] * 29,  # stops at t = 1 (threshold 0.5)
+              4: [0.9] * 30,  # above the threshold from t = 1 on, but not before min_frames: stops at t = 3
               5: [threshold[t] - 1e-3 for t in range(30)]}  # never: runs to max_frames
 
     def step(frame, position, memory, allowed, caches):  # the decoder on one new frame (generation's KV path)
@@ -276,7 +323,7 @@ def test_stopping_rule_on_scripted_counters(monkeypatch):
     monkeypatch.setattr(model, "_step", step)
     ids = torch.tensor([[3], [4], [5]])
     produced = model.generate(ids, ids != 0, max_frames=10)
-    assert [len(f) for f in produced] == [7, 1, 10]
+    assert [len(f) for f in produced] == [7, 3, 10]
     for frames in produced:
         assert torch.equal(frames[:, 0], torch.arange(1, len(frames) + 1, dtype=torch.float32))
     torch.testing.assert_close(produced[0][:, -1], torch.tensor(script[3][:7]))

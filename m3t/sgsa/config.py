@@ -41,8 +41,14 @@ class SGSAConfig:
     max_text_tokens: int = 64  # longer training sentences are skipped with the reason
     gloss_weight: float = 1.0  # weight of the gloss CTC loss on the encoder output; 0 = no gloss head
     min_token_frequency: int = 1  # train-split words seen fewer times become <unk>
+    # counter decoding's stop rule (m3t.sgsa.model.stop_threshold): a sequence ends at its first frame t >= min_frames
+    # whose counter reaches 1 - max(0.5 / t, stop_tolerance)
+    min_frames: int = 4
+    stop_tolerance: float = 0.02
 
     def __post_init__(self) -> None:
+        if not 0 <= self.stop_tolerance < 1:
+            raise ValueError(f"sgsa.stop_tolerance: expected in [0, 1), got {self.stop_tolerance}")
         if self.encoder_width % self.encoder_heads:
             raise ValueError(f"sgsa.encoder_width {self.encoder_width} is not divisible by encoder_heads "
                              f"{self.encoder_heads}")
@@ -50,7 +56,7 @@ class SGSAConfig:
             raise ValueError(f"sgsa.standard_width {self.standard_width} is not divisible by decoder_heads "
                              f"{self.decoder_heads}")
         for key in ("encoder_layers", "encoder_heads", "decoder_heads", "standard_layers", "max_frames",
-                    "max_text_tokens", "min_token_frequency"):
+                    "max_text_tokens", "min_token_frequency", "min_frames"):
             if getattr(self, key) < 1:
                 raise ValueError(f"sgsa.{key}: expected >= 1, got {getattr(self, key)}")
         if self.decoder_layers < 0 or self.temporal_adjacency < 0:
@@ -88,8 +94,9 @@ class SGSAConfig:
 class SGSATrainConfig:
     """params.yaml ``sgsa_train``. SGSA Sec. 5 / Progressive Transformers: Xavier initialisation, Adam (default
     betas) at 1e-3, Gaussian noise augmentation with noise rate 5 (x the per-dimension std of the previous
-    epoch's prediction error), ReduceLROnPlateau on the validation loss, the checkpoint with the lowest dev
-    DTW-JPE kept (PT selects on DTW)."""
+    epoch's prediction error, here capped at ``noise_cap`` x the coordinate's own std over the train split),
+    ReduceLROnPlateau on the validation figure, the checkpoint with the lowest dev DTW-JPE x length penalty kept
+    (PT selects on DTW; :data:`m3t.sgsa.evaluate.SELECTION_METRIC`)."""
 
     cache_dir: str = ".cache/sgsa"  # best + resumable last checkpoints by run key
     systems: tuple[str, ...] = ("pt", "sgsa")  # pt: the sgsa section with decoder_layers 0 (Progressive
@@ -101,8 +108,11 @@ class SGSATrainConfig:
     lr_factor: float = 0.7
     min_lr: float = 2e-4
     noise_rate: float = 5.0  # 0 = no noise augmentation
-    counter_weight: float = 0.0  # extra weight on the counter's squared error; 0 = the papers' plain MSE, where the
-    # counter is 1 of S coordinates
+    noise_cap: float = 1.0  # the noise's std never exceeds this x the coordinate's std over the train split (the
+    # papers' rule feeds back on itself: more noise, larger errors, more noise; 0 = no cap)
+    counter_weight: float = 1.0  # extra weight on the counter's squared error: 1 gives the counter about as much of
+    # the loss as all coordinates together; 0 = the papers' plain MSE, where the counter is 1 of S coordinates and
+    # was never learned on the embedded corpus
     grad_clip: float = 5.0  # 0 = no clipping
     eval_every: int = 5
     eval_max_clips: int = 16  # dev clips generated at each validation (0 = all)
@@ -117,8 +127,9 @@ class SGSATrainConfig:
                 raise ValueError(f"sgsa_train.{key}: expected >= 1, got {getattr(self, key)}")
         if not 0 < self.lr_factor < 1:
             raise ValueError(f"sgsa_train.lr_factor: expected in (0, 1), got {self.lr_factor}")
-        if self.noise_rate < 0:
-            raise ValueError(f"sgsa_train.noise_rate: expected >= 0, got {self.noise_rate}")
+        for key in ("noise_rate", "noise_cap", "counter_weight"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"sgsa_train.{key}: expected >= 0, got {getattr(self, key)}")
         unknown = [s for s in self.systems if s not in SYSTEMS]
         if unknown or not self.systems or len(set(self.systems)) != len(self.systems):
             raise ValueError(f"sgsa_train.systems {list(self.systems)}: expected distinct names of {list(SYSTEMS)}")

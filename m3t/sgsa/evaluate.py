@@ -5,8 +5,15 @@ counter decides the length; ``counter="ground_truth"`` gives it the true length 
 PT numbers, which were produced so). A produced sequence is denormalised with the reference clip's scale (the
 signer's mean shoulder width, as the body-model scorer poses both sides with the signer's identity) and scored
 against the reference skeleton by SOKE's DTW-JPE / DTW-PA-JPE per region (``body`` neck-rooted, each hand
-wrist-rooted: :func:`m3t.metrics.scorer.score_point_pairs`). ``dtw_jpe_mean_m``, the mean of body and hand
-DTW-JPE, selects checkpoints, as for the SMLM.
+wrist-rooted: :func:`m3t.metrics.scorer.score_point_pairs`). Checkpoints are selected on
+``dtw_jpe_mean_x_length_m``: ``dtw_jpe_mean_m`` (the mean of body and hand DTW-JPE, SOKE's raw accumulated cost)
+times the clips' mean length penalty max(U / U_ref, U_ref / U). The raw cost alone rewards a sequence that stops
+after one frame: its path has only the reference's length, each step a distance to one mean-ish pose, while every
+extra frame of a sequence that runs long adds to it.
+
+Counter decoding's length statistics per split: ``mean_frames``, ``length_ratio`` (mean of U / U_ref, kept for
+continuity; a mean of ratios hides bimodal failures), ``length_ratio_median``, ``length_within_25`` (share of clips
+with 0.75 <= U / U_ref <= 1.25) and ``stopped_rate`` (share ended by their own counter before ``max_frames``).
 
 Axis legend: B batch, U frames, S skeleton width with counter, J joints.
 """
@@ -25,7 +32,15 @@ from m3t.metrics.scorer import MotionScores, PointPair, score_point_pairs
 from m3t.sgsa.data import Sample, collate, text_batch
 from m3t.sgsa.model import SGSAProduction
 
-SELECTION_METRIC = "dtw_jpe_mean_m"
+MEAN_DTW = "dtw_jpe_mean_m"  # the mean of body and hand DTW-JPE (SOKE's raw cost), as for the SMLM
+SELECTION_METRIC = "dtw_jpe_mean_x_length_m"
+
+
+def length_penalty(frames: int, reference_frames: int) -> float:
+    """max(U / U_ref, U_ref / U) >= 1: how many times too long or too short a produced sequence is."""
+    if frames < 1 or reference_frames < 1:
+        return float("inf")
+    return max(frames / reference_frames, reference_frames / frames)
 
 
 @torch.no_grad()
@@ -65,8 +80,7 @@ class ProductionReport:
 def score_production(samples: Sequence[Sample], produced: dict[str, np.ndarray], graph: SkeletonGraph,
                      max_frames: int, progress: bool = False) -> ProductionReport:
     """DTW metrics of every sample's produced skeleton against its reference, overall and per group, with the
-    length statistics of counter decoding (``mean_frames``, ``length_ratio`` = produced / reference frames,
-    ``stopped_rate`` = sequences whose counter ended them before ``max_frames``)."""
+    length statistics of counter decoding and the selection figure (module docstring)."""
     lost = [s.clip_id for s in samples if s.clip_id not in produced]
     if lost:
         raise KeyError(f"no produced skeleton for clips {lost[:5]} (of {len(lost)}); rerun the generation")
@@ -80,12 +94,17 @@ def score_production(samples: Sequence[Sample], produced: dict[str, np.ndarray],
                      "reference_frames": len(s.clip.points), **c.metrics})
     summary = dict(scores.overall)
     if scores.overall:
-        summary[SELECTION_METRIC] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
+        ratios = np.array([r["frames"] / r["reference_frames"] for r in rows])
+        summary[MEAN_DTW] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
+        summary["length_penalty"] = float(np.mean([length_penalty(r["frames"], r["reference_frames"]) for r in rows]))
+        summary[SELECTION_METRIC] = summary[MEAN_DTW] * summary["length_penalty"]
         summary["mean_frames"] = float(np.mean([r["frames"] for r in rows]))
-        summary["length_ratio"] = float(np.mean([r["frames"] / r["reference_frames"] for r in rows]))
+        summary["length_ratio"] = float(ratios.mean())
+        summary["length_ratio_median"] = float(np.median(ratios))
+        summary["length_within_25"] = float(np.mean((ratios >= 0.75) & (ratios <= 1.25)))
         summary["stopped_rate"] = float(np.mean([r["frames"] < max_frames for r in rows]))
     else:
-        summary[SELECTION_METRIC] = float("inf")
+        summary[MEAN_DTW] = summary[SELECTION_METRIC] = float("inf")
     summary.update(scores.group_summary)
     return ProductionReport(summary, scores, rows)
 

@@ -4,19 +4,25 @@ Progressive Transformers baseline (PT, Saunders et al. 2020), one class picked b
 Spoken-language encoder (Sec. 4.1): word embedding x sqrt(E) + sinusoidal positions -> pre-norm transformer encoder
 with a final LayerNorm (JoeyNMT) -> memory (B, K, E); optional gloss head on the memory (CTC logits, class 0 = blank).
 
-SGSA decoder (Sec. 4.2, ``decoder_layers = L >= 1``): width S throughout, no input embedding and no positional
-encoding (the counter column carries the progress). Each of the L post-norm layers:
-skeletal graph self-attention (h heads of full width S; values V_A = x A* W_V; causal mask banded to the last N
-frames) -> encoder-decoder attention (S -> E queries over the memory, back to S) -> feed-forward S -> S -> S;
+Both decoders take the input path of Progressive Transformers' JoeyNMT decoder: frames embedded by a Linear layer,
+plus sinusoidal positions, dropout, then pre-norm layers (x + sublayer(LayerNorm(x))) and a final LayerNorm before
+the output Linear. Pre-norm with the final LayerNorm is what keeps the residual stream bounded under noise
+augmentation; post-norm layers fed raw frames (this model's first form) never learned the counter on the embedded
+corpus, and pre-norm without the final LayerNorm diverged under noise.
+
+SGSA decoder (Sec. 4.2, ``decoder_layers = L >= 1``): width S throughout ("an embedding size of S": the embedding is
+Linear(S, S), so every layer's stream keeps the skeleton's S columns). Each of the L layers: skeletal graph
+self-attention (h heads of full width S; values V_A = x A* W_V on the normalised stream; causal mask banded to the
+last N frames) -> encoder-decoder attention (S -> E queries over the memory, back to S) -> feed-forward S -> S -> S;
 a final Linear(S, S) gives the next frames.
-PT decoder (``decoder_layers = 0``): frames embedded Linear(S, W) + sinusoidal positions -> ``standard_layers``
-standard post-norm transformer decoder layers (memory projected E -> W when E != W) -> Linear(W, S).
+PT decoder (``decoder_layers = 0``): frames embedded Linear(S, W) -> ``standard_layers`` standard transformer decoder
+layers (memory projected E -> W when E != W) -> Linear(W, S).
 
 Training input convention (teacher forcing): for a target clip of U frames, ``frames_in[:, 0]`` is the start frame
 (all zeros, counter 0) and ``frames_in[:, t] = target[:, t - 1]``; the output at t predicts ``target[:, t]``. The
 target's counter (last) column is (t + 1) / U for frame t (0-based), so the last frame has counter 1.
-Generation (counter decoding, PT) feeds each prediction back and stops a sequence at its first frame t (1-based)
-whose counter reaches 1 - 0.5 / t.
+Generation (counter decoding, PT) feeds each prediction back and stops a sequence at its first frame t (1-based),
+t >= ``cfg.min_frames``, whose counter reaches 1 - max(0.5 / t, ``cfg.stop_tolerance``) (:func:`stop_threshold`).
 
 Axis legend: B batch, K text tokens, E encoder width, G gloss classes, U frames, S skeleton width (coordinates + 1
 counter, the counter last), W width of the PT decoder, h heads.
@@ -50,6 +56,18 @@ class SGSADims:
 class SGSAOutput:
     frames: torch.Tensor  # (B, U, S) predicted next frames (counter in the last column)
     gloss_logits: torch.Tensor | None  # (B, K, G) or None without a gloss head
+
+
+def stop_threshold(t: torch.Tensor | int, tolerance: float) -> torch.Tensor | float:
+    """The counter at which counter decoding ends a sequence at frame t (1-based): 1 - max(0.5 / t, tolerance).
+
+    A perfect counter t / U crosses 1 - 0.5 / t first at t = U (the counter rounded to the nearest frame says
+    "last"); on a long clip that margin is a fraction of a percent, which a learned counter that levels off just
+    below 1 never reaches, so the margin is never less than ``tolerance`` (a sequence may end that share of its
+    length early)."""
+    if isinstance(t, int):
+        return 1.0 - max(0.5 / t, tolerance)
+    return 1.0 - torch.clamp(0.5 / t, min=tolerance)
 
 
 def causal_band(queries: int, keys: int, band: float, device: torch.device | None = None) -> torch.Tensor:
@@ -156,7 +174,8 @@ class SkeletalGraphSelfAttention(nn.Module):
 
 
 class SGSADecoderLayer(nn.Module):
-    """One post-norm SGSA decoder layer of width S (Sec. 4.2): SGSA, encoder-decoder attention, feed-forward S."""
+    """One pre-norm SGSA decoder layer of width S (Sec. 4.2): SGSA, encoder-decoder attention, feed-forward S, each
+    applied to the LayerNorm of the stream and added to it."""
 
     def __init__(self, width: int, memory_width: int, heads: int, adjacency: torch.Tensor, band: float,
                  dropout: float):
@@ -170,10 +189,11 @@ class SGSADecoderLayer(nn.Module):
     def forward(self, x: torch.Tensor, memory: torch.Tensor, frame_mask: torch.Tensor | None,
                 memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """x (B, U, S), memory (B, K, E), memory_allowed (B, 1, K) -> (B, U, S), self-attention weights if asked."""
-        a, weights = self.self_attn(x, frame_mask, need_weights)
-        x = self.norm1(x + self.dropout(a))
-        x = self.norm2(x + self.dropout(self.cross_attn(x, memory, memory, memory_allowed)[0]))
-        return self.norm3(x + self.dropout(self.ffn(x))), weights
+        a, weights = self.self_attn(self.norm1(x), frame_mask, need_weights)
+        x = x + self.dropout(a)
+        h = self.norm2(x)
+        x = x + self.dropout(self.cross_attn(h, memory, memory, memory_allowed)[0])
+        return x + self.dropout(self.ffn(self.norm3(x))), weights
 
 
     def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
@@ -181,14 +201,15 @@ class SGSADecoderLayer(nn.Module):
         """The layer for one new frame x (B, 1, S) of generation, with the earlier frames' keys / values in
         ``cache``: the same numbers as :meth:`forward` on the whole prefix, at the cost of one frame."""
         sa = self.self_attn
-        x = self.norm1(x + sa.attention.step(x, x, x @ sa.adjacency, cache, sa.band))
-        x = self.norm2(x + self.cross_attn.cross_step(x, memory, memory_allowed, cache))
-        return self.norm3(x + self.ffn(x))
+        h = self.norm1(x)
+        x = x + sa.attention.step(h, h, h @ sa.adjacency, cache, sa.band)
+        x = x + self.cross_attn.cross_step(self.norm2(x), memory, memory_allowed, cache)
+        return x + self.ffn(self.norm3(x))
 
 
 class StandardDecoderLayer(nn.Module):
-    """A standard post-norm transformer decoder layer (PT; the math of nn.TransformerDecoderLayer with ReLU and
-    norm_first=False): causal self-attention, cross-attention over the memory, feed-forward."""
+    """A standard pre-norm transformer decoder layer (PT's JoeyNMT layer; the math of nn.TransformerDecoderLayer with
+    ReLU and norm_first=True): causal self-attention, cross-attention over the memory, feed-forward."""
 
     def __init__(self, width: int, heads: int, ffn: int, dropout: float):
         super().__init__()
@@ -201,18 +222,20 @@ class StandardDecoderLayer(nn.Module):
     def forward(self, x: torch.Tensor, memory: torch.Tensor, self_allowed: torch.Tensor,
                 memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """x (B, U, W), memory (B, K, W), self_allowed (B or 1, U, U), memory_allowed (B, 1, K) -> (B, U, W)."""
-        a, weights = self.self_attn(x, x, x, self_allowed, need_weights)
-        x = self.norm1(x + self.dropout(a))
-        x = self.norm2(x + self.dropout(self.cross_attn(x, memory, memory, memory_allowed)[0]))
-        return self.norm3(x + self.dropout(self.ffn(x))), weights
+        h = self.norm1(x)
+        a, weights = self.self_attn(h, h, h, self_allowed, need_weights)
+        x = x + self.dropout(a)
+        x = x + self.dropout(self.cross_attn(self.norm2(x), memory, memory, memory_allowed)[0])
+        return x + self.dropout(self.ffn(self.norm3(x))), weights
 
 
     def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
              cache: dict[str, torch.Tensor]) -> torch.Tensor:
         """One new frame x (B, 1, W) of generation with a key / value cache (see SGSADecoderLayer.step)."""
-        x = self.norm1(x + self.self_attn.step(x, x, x, cache))
-        x = self.norm2(x + self.cross_attn.cross_step(x, memory, memory_allowed, cache))
-        return self.norm3(x + self.ffn(x))
+        h = self.norm1(x)
+        x = x + self.self_attn.step(h, h, h, cache)
+        x = x + self.cross_attn.cross_step(self.norm2(x), memory, memory_allowed, cache)
+        return x + self.ffn(self.norm3(x))
 
 
 class SGSAProduction(nn.Module):
@@ -236,22 +259,21 @@ class SGSAProduction(nn.Module):
                 raise ValueError(f"sgsa.encoder_width {e} is not divisible by decoder_heads {cfg.decoder_heads} "
                                  "(the cross-attention heads)")
             a = torch.as_tensor(adjacency, dtype=torch.float32)
+            w = s
             self.layers = nn.ModuleList(SGSADecoderLayer(s, e, cfg.decoder_heads, a, cfg.band, cfg.dropout)
                                         for _ in range(cfg.decoder_layers))
-            self.frame_embedding = self.memory_projection = None
-            self.output = nn.Linear(s, s)
+            self.memory_projection = None
         else:
             w = cfg.standard_width
-            self.frame_embedding = nn.Linear(s, w)
             self.memory_projection = nn.Linear(e, w) if e != w else None
             self.layers = nn.ModuleList(StandardDecoderLayer(w, cfg.decoder_heads, cfg.standard_ffn, cfg.dropout)
                                         for _ in range(cfg.standard_layers))
-            self.output = nn.Linear(w, s)
+        self.frame_embedding = nn.Linear(s, w)
+        self.final_norm = nn.LayerNorm(w)
+        self.output = nn.Linear(w, s)
         # derived from the config, so kept out of the state dict; longer inputs get a fresh table
         self.register_buffer("text_positions", sinusoid_table(cfg.max_text_tokens + 2, e), persistent=False)
-        if self.frame_embedding is not None:
-            self.register_buffer("frame_positions", sinusoid_table(cfg.max_frames + 1, cfg.standard_width),
-                                 persistent=False)
+        self.register_buffer("frame_positions", sinusoid_table(cfg.max_frames + 1, w), persistent=False)
         for p in self.parameters():  # Xavier initialisation (SGSA Sec. 5)
             if p.dim() > 1:
                 nn.init.xavier_uniform_(p)
@@ -280,14 +302,13 @@ class SGSAProduction(nn.Module):
         """decode, and the self-attention weights (B, h, U, U) of layer ``weights_of`` when not None."""
         memory_allowed = text_mask[:, None, :]
         weights = None
-        if self.frame_embedding is None:  # SGSA: the frames go in as they are
-            x = frames_in
+        u = frames_in.shape[1]
+        x = self.dropout(self.frame_embedding(frames_in) + self._positions(self.frame_positions, u))
+        if self.cfg.decoder_layers > 0:  # SGSA: its layers build their banded mask
             for i, layer in enumerate(self.layers):
                 x, w = layer(x, memory, frame_mask, memory_allowed, need_weights=i == weights_of)
                 weights = w if i == weights_of else weights
         else:  # PT
-            u = frames_in.shape[1]
-            x = self.dropout(self.frame_embedding(frames_in) + self._positions(self.frame_positions, u))
             if self.memory_projection is not None:
                 memory = self.memory_projection(memory)
             self_allowed = causal_band(u, u, math.inf, x.device)[None]
@@ -296,7 +317,7 @@ class SGSAProduction(nn.Module):
             for i, layer in enumerate(self.layers):
                 x, w = layer(x, memory, self_allowed, memory_allowed, need_weights=i == weights_of)
                 weights = w if i == weights_of else weights
-        return self.output(x), weights
+        return self.output(self.final_norm(x)), weights
 
     def decode(self, memory: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,
                frame_mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -323,8 +344,8 @@ class SGSAProduction(nn.Module):
     def generate(self, text_ids: torch.Tensor, text_mask: torch.Tensor, max_frames: int,
                  true_lengths: torch.Tensor | None = None) -> list[torch.Tensor]:
         """Autoregressive counter decoding in eval mode: text_ids / text_mask (B, K) -> per sequence the produced
-        frames (U_b, S), counter included. A sequence stops at its first frame t (1-based) whose counter reaches
-        1 - 0.5 / t, or after ``max_frames``. With ``true_lengths`` (B,) (ground-truth counter: parity with published
+        frames (U_b, S), counter included. A sequence stops at its first frame t (1-based), t >= ``cfg.min_frames``,
+        whose counter reaches :func:`stop_threshold` (t, ``cfg.stop_tolerance``), or after ``max_frames``. With ``true_lengths`` (B,) (ground-truth counter: parity with published
         PT numbers only) sequence b runs exactly U_b = true_lengths[b] frames (max_frames is not applied) and the
         counter of its produced frame t (1-based) is overwritten by the true t / U_b before it is fed back.
         Finished sequences are dropped from the batch, so nothing of theirs changes after they stop."""
@@ -354,7 +375,7 @@ class SGSAProduction(nn.Module):
                     pred[:, -1] = t / true_lengths[active].to(pred.dtype)
                     done = true_lengths[active] == t
                 else:
-                    done = pred[:, -1] >= 1.0 - 0.5 / t
+                    done = (pred[:, -1] >= stop_threshold(t, self.cfg.stop_tolerance)) & (t >= self.cfg.min_frames)
                 produced[active, t - 1] = pred
                 lengths[active[done]] = t
                 keep = ~done
@@ -368,13 +389,10 @@ class SGSAProduction(nn.Module):
               caches: list[dict[str, torch.Tensor]]) -> torch.Tensor:
         """The decoder on one new input frame (B, 1, S) at ``position`` (0 = the start frame), the earlier frames
         in ``caches``; memory already projected for PT -> the predicted next frame (B, 1, S)."""
-        if self.frame_embedding is None:
-            x = frame
-        else:
-            x = self.frame_embedding(frame) + self._positions(self.frame_positions, position + 1)[position]
+        x = self.frame_embedding(frame) + self._positions(self.frame_positions, position + 1)[position]
         for layer, cache in zip(self.layers, caches):
             x = layer.step(x, memory, allowed, cache)
-        return self.output(x)
+        return self.output(self.final_norm(x))
 
 
     @torch.no_grad()

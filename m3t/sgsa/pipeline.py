@@ -40,7 +40,7 @@ from m3t.shards.skeletons import SKELETON_STREAM, graph_points, skeleton_clips
 from m3t.sgsa.checkpoint import STAGE, LoadedSGSA, load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
 from m3t.sgsa.data import Sample, collate, make_samples, vocabularies
-from m3t.sgsa.evaluate import SELECTION_METRIC, generate, produced_points, score_production
+from m3t.sgsa.evaluate import MEAN_DTW, generate, produced_points, score_production
 from m3t.sgsa.train import run_key, train_sgsa
 from m3t.backtranslation.text import Vocabulary
 from m3t.training import run_jobs, worker_split
@@ -210,7 +210,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
                                                   regions(points[s.clip_id], graph), regions(s.clip.points, graph))
                                         for s in scored])
             summary.update({f"{SMLM_SYSTEM}/{split}/{k}": v for k, v in scores.summary.items()})
-            summary[f"{SMLM_SYSTEM}/{split}/{SELECTION_METRIC}"] = 0.5 * (
+            summary[f"{SMLM_SYSTEM}/{split}/{MEAN_DTW}"] = 0.5 * (
                 scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
             summary[f"{SMLM_SYSTEM}/{split}/clips"] = float(len(scored))
             per_clip.extend({"system": SMLM_SYSTEM, "split": split, "clip_id": c.clip_id, "group": c.group,

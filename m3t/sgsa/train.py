@@ -1,12 +1,17 @@
 """Training one skeletal production model, SGSA or its PT baseline (SGSA Sec. 4.2 / 5, Progressive Transformers).
 
 Loss: MSE between predicted and ground-truth frames (skeleton coordinates and counter, real frames only), plus
-``counter_weight`` x the counter's own squared error (0 = the papers' plain MSE), plus ``gloss_weight`` x the CTC loss of the encoder's gloss head over the clips that have glosses (gloss supervision).
+``counter_weight`` x the counter's own squared error (0 = the papers' plain MSE, in which the counter is 1 of S
+coordinates: on the embedded corpus it was never learned and stayed ~0.5 on every frame), plus ``gloss_weight`` x
+the CTC loss of the encoder's gloss head over the clips that have glosses (gloss supervision).
 Teacher forcing with **Gaussian noise augmentation** (PT): the previous frames fed to the decoder get noise
-``N(0, 1) x noise_rate x std_d``, where ``std_d`` is the per-coordinate standard deviation of the previous
-epoch's prediction error (none in the first epoch; the counter column is never perturbed). Adam at ``lr`` with
-default betas, ReduceLROnPlateau on the dev DTW-JPE, gradient clipping; the checkpoint with the lowest dev
-``dtw_jpe_mean_m`` (generated with the predicted counter) is ``best``. A resumable ``last`` is written at most
+``N(0, 1) x min(noise_rate x std_d, noise_cap x spread_d)``, where ``std_d`` is the per-coordinate standard
+deviation of the previous epoch's prediction error (none in the first epoch) and ``spread_d`` the coordinate's
+standard deviation over the train split; the counter column is never perturbed. Without the cap the papers' rule
+feeds back on itself (noise raises the error, which raises the noise: error std 2 -> 10 -> 51 -> NaN in one run
+at rate 5). Adam at ``lr`` with default betas, ReduceLROnPlateau on the dev selection figure, gradient clipping;
+the checkpoint with the lowest dev :data:`~m3t.sgsa.evaluate.SELECTION_METRIC` (generated with the predicted
+counter; DTW-JPE times a length penalty, so a model is not selected for stopping after one frame) is ``best``. A resumable ``last`` is written at most
 every 30 s and at the end (:class:`m3t.training.EpochTail`), the noise statistics with it: a killed run continues
 the same curve.
 
@@ -33,7 +38,7 @@ from m3t.sgsa.evaluate import SELECTION_METRIC, ProductionEvaluator
 from m3t.sgsa.model import SGSAProduction
 from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, adam, optimizer_step, run_digest
 
-TRAIN_VERSION = "sgsa-v1"  # part of the resume key: bump when older training state becomes invalid
+TRAIN_VERSION = "sgsa-v2"  # part of the resume key: bump when older training state becomes invalid
 
 
 def run_key(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
@@ -70,6 +75,25 @@ def losses(model: SGSAProduction, batch: Batch, gloss_weight: float, noise_std: 
     return result, err.detach()
 
 
+def noise_ceiling(train: Sequence[Sample], noise_cap: float, device: torch.device) -> torch.Tensor | None:
+    """(S,) the largest noise std per coordinate: ``noise_cap`` x the coordinate's std over the train split's frames
+    (None with ``noise_cap`` 0: no cap)."""
+    if noise_cap == 0:
+        return None
+    frames = np.concatenate([s.target for s in train]).astype(np.float64)  # (N, S)
+    return torch.as_tensor(frames.std(0) * noise_cap, dtype=torch.float32, device=device)
+
+
+def augmentation_std(error_std: torch.Tensor | None, noise_rate: float, ceiling: torch.Tensor | None,
+                     device: torch.device) -> torch.Tensor | None:
+    """(S,) the std of an epoch's input noise: ``noise_rate`` x the previous epoch's per-coordinate error std, at
+    most ``ceiling`` (:func:`noise_ceiling`); None without an error std (the first epoch) or with rate 0."""
+    if error_std is None or noise_rate == 0:
+        return None
+    std = torch.as_tensor(error_std, device=device) * noise_rate
+    return std if ceiling is None else torch.minimum(std, ceiling)
+
+
 def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph, text_vocab: Vocabulary,
                gloss_vocab: Vocabulary | None, train: Sequence[Sample], dev: Sequence[Sample], data_version: str,
                best_path: str | Path, last_path: str | Path | None = None,
@@ -90,6 +114,7 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
     dev = list(dev)[: cfg.eval_max_clips] if cfg.eval_max_clips > 0 else list(dev)
     evaluator = ProductionEvaluator(dev, graph, text_vocab, model_cfg.max_frames) if dev else None
     noise = {"std": None}  # per-coordinate std of the previous epoch's prediction error (S,)
+    cap = noise_ceiling(train, cfg.noise_cap, device)
 
     def evaluate() -> dict[str, float]:
         scores = evaluator(model)
@@ -120,8 +145,7 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
         model.train()
         sums: dict[str, list[float]] = {}
         errors = []
-        std = None if noise["std"] is None or cfg.noise_rate == 0 else \
-            torch.as_tensor(noise["std"], device=device) * cfg.noise_rate
+        std = augmentation_std(noise["std"], cfg.noise_rate, cap, device)
         for samples in epoch_batches(list(train), cfg.batch_size, cfg.seed, epoch):
             out, err = losses(model, collate(samples, text_vocab).to(device), model_cfg.gloss_weight, std,
                               cfg.counter_weight)
