@@ -14,7 +14,7 @@ from m3t.backtranslation.model import sinusoid_table
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch
 from m3t.sgsa.train import losses
-from m3t.sgsa.model import SGSADims, SGSAProduction, SkeletalGraphSelfAttention
+from m3t.sgsa.model import CounterStop, SGSADims, SGSAProduction, SkeletalGraphSelfAttention
 
 S = 7  # two joints of 3 coordinates + the counter
 TINY = dict(encoder_layers=1, encoder_heads=2, encoder_width=16, encoder_ffn=32, decoder_heads=2, standard_layers=2,
@@ -300,16 +300,37 @@ def test_counter_decoding_stops_at_the_trained_length_whatever_the_seed(decoder_
     assert sum(n == frames for n in lengths) >= 7, lengths
 
 
+def test_stop_rule_reads_the_length_from_the_counters_trend():
+    """CounterStop ends a row at its first t >= min_frames with t >= sum(i^2) / sum(i c_i) - 1/2."""
+    def ends(counters: list[float], min_frames: int = 1) -> int | None:
+        stop = CounterStop(1, min_frames)
+        for t, c in enumerate(counters, start=1):
+            if bool(stop.update(t, torch.tensor([c]), torch.tensor([0]))[0]):
+                return t
+        return None
+
+    assert ends([t / 9 for t in range(1, 20)]) == 9  # a perfect counter: the true length exactly
+    assert ends([t / 30 for t in range(1, 40)]) == 30
+    # a counter that lags at the end (stuck at 0.75 from frame 7 of 8): the last-counter rule of PT
+    # (c_t >= 1 - 0.5 / t) never fires; the trend ends it at 10 (U_t = 8.0, 8.4, 9.0, 9.7, 10.4 for t = 6 .. 10)
+    lagging = [t / 8 for t in range(1, 7)] + [0.75] * 20
+    assert all(c < 1 - 0.5 / t for t, c in enumerate(lagging, start=1)) and ends(lagging) == 10
+    assert ends([-0.1, 0.0, -0.2, 0.0]) is None  # no positive trend: it goes on
+    assert ends([0.9] * 10) == 1 and ends([0.9] * 10, min_frames=3) == 3  # but never before min_frames
+    # rows are independent: a batch gives each row what it gives alone
+    stop, rows = CounterStop(3, 1), torch.tensor([0, 1, 2])
+    done = [stop.update(t, torch.tensor([t / 4, t / 6, -1.0]), rows) for t in range(1, 7)]
+    assert [int(torch.nonzero(torch.stack([d[r] for d in done]))[0]) + 1 if any(d[r] for d in done) else None
+            for r in range(3)] == [4, 6, None]
+
+
 def test_stopping_rule_on_scripted_counters(monkeypatch):
     """generate with a scripted decoder: the memory is the text ids, the predicted counter of frame t (1-based) is
     read from a script per text, coordinate 0 counts the frames fed in (so feeding back is visible)."""
-    model = tiny(min_frames=3, stop_tolerance=0.1)
-    # 1 - max(0.5 / t, 0.1): 0.5, 0.75, 0.833, 0.875, 0.9, 0.9, ... (the tolerance from t = 5 on)
-    threshold = [1.0 - max(0.5 / t, 0.1) for t in range(1, 31)]
-    assert threshold[5] == threshold[20] == pytest.approx(0.9)
-    script = {3: [threshold[t] - 1e-3 for t in range(6)] + [threshold[6] + 1e-4] + [1.0] * 23,  # stops at t = 7
-              4: [0.9] * 30,  # above the threshold from t = 1 on, but not before min_frames: stops at t = 3
-              5: [threshold[t] - 1e-3 for t in range(30)]}  # never: runs to max_frames
+    model = tiny(min_frames=3)
+    script = {3: [t / 7 for t in range(1, 31)],  # a perfect counter of 7 frames: stops at t = 7
+              4: [0.9] * 30,  # "past the end" from t = 1 on, but not before min_frames: stops at t = 3
+              5: [-0.01] * 30}  # never: runs to max_frames
 
     def step(frame, position, memory, allowed, caches):  # the decoder on one new frame (generation's KV path)
         out = torch.zeros_like(frame)

@@ -41,14 +41,9 @@ class SGSAConfig:
     max_text_tokens: int = 64  # longer training sentences are skipped with the reason
     gloss_weight: float = 1.0  # weight of the gloss CTC loss on the encoder output; 0 = no gloss head
     min_token_frequency: int = 1  # train-split words seen fewer times become <unk>
-    # counter decoding's stop rule (m3t.sgsa.model.stop_threshold): a sequence ends at its first frame t >= min_frames
-    # whose counter reaches 1 - max(0.5 / t, stop_tolerance)
-    min_frames: int = 4
-    stop_tolerance: float = 0.02
+    min_frames: int = 4  # counter decoding never ends a sequence before this frame (m3t.sgsa.model.CounterStop)
 
     def __post_init__(self) -> None:
-        if not 0 <= self.stop_tolerance < 1:
-            raise ValueError(f"sgsa.stop_tolerance: expected in [0, 1), got {self.stop_tolerance}")
         if self.encoder_width % self.encoder_heads:
             raise ValueError(f"sgsa.encoder_width {self.encoder_width} is not divisible by encoder_heads "
                              f"{self.encoder_heads}")
