@@ -123,8 +123,8 @@ def curves(runs: list[RunRecord], experiment: ExperimentConfig, root: str | Path
 def claims(runs: list[RunRecord]) -> str:
     """Every claim of :data:`m3t.claims.CLAIMS` judged on the runs (what ``m3t claims`` writes)."""
     rows = claims_table(runs)
-    note = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % bootstrap interval over "
-            "test clips of the seed-averaged values (over seeds for codebook statistics); runs of one data version "
+    note = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % hierarchical bootstrap "
+            "interval over training seeds and test clips (over seeds for codebook statistics); runs of one data version "
             "only. Verdicts need >= 3 seeds; a claim with no runs says which command makes them. "
             "<code>m3t claims</code> writes the same table to claims.json / claims.md.")
     body = []

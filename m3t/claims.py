@@ -3,8 +3,8 @@
 Every claim compares two variants A and B on one metric (:data:`CLAIMS`). Its values come from the artifacts the
 evaluate stages log (``per_clip.csv``, ``backtranslation.csv``, ``predictions.csv``) or, for codebook
 statistics, the training runs' metrics: per test clip, for every seed both variants were run with (the newest
-finished run per variant and seed). :mod:`m3t.metrics.stats` averages each clip over the seeds, bootstraps the
-mean over clips (seeds themselves are the unit for per-run statistics) and gives the verdict. With fewer than
+finished run per variant and seed). :mod:`m3t.metrics.stats` compares the seed-averaged means over clips with a
+hierarchical bootstrap over seeds and clips (seeds alone for per-run statistics) and gives the verdict. With fewer than
 ``min_seeds`` seeds the verdict is ``inconclusive`` whatever the interval: two runs of the embedded pipeline
 that differed only by float rounding flipped orderings, so one seed answers nothing.
 
@@ -354,8 +354,8 @@ def _fmt(value: float) -> str:
 
 def claims_markdown(rows: list[dict], min_seeds: int) -> str:
     lines = [f"Claims of M3T and SGSA on this platform's runs. Ours: A -> B as mean +- std over seeds; the 95 % "
-             f"bootstrap interval is over test clips of the seed-averaged values (over seeds for codebook "
-             f"statistics). Verdicts need >= {min_seeds} seeds. Metric definitions in the metric column.", "",
+             f"interval is a hierarchical bootstrap over training seeds and test clips (over seeds for codebook "
+             f"statistics), so it includes how much a retrained model moves. Verdicts need >= {min_seeds} seeds. Metric definitions in the metric column.", "",
              "| claim | source | paper | metric | ours: A -> B | compared [95 % interval] | verdict | seeds | runs |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

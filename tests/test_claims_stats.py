@@ -1,5 +1,5 @@
 """Intervals and verdicts of the claims (m3t.metrics.stats) on fixed inputs: a clear win, a clear loss, a
-straddle, for a lower-is-better and a higher-is-better metric; seeds paired per clip; missing scores."""
+straddle, for a lower-is-better and a higher-is-better metric; seed noise in the interval; missing scores."""
 from __future__ import annotations
 
 import math
@@ -29,7 +29,8 @@ def rng() -> np.random.Generator:
 
 def test_a_clear_win_a_clear_loss_and_a_straddle():
     win = paired(A, A - 1.0, rng())  # B lower on every clip and seed
-    assert win.difference == pytest.approx(-1.0) and win.interval == pytest.approx((-1.0, -1.0))
+    low, high = win.interval  # A's seeds and B's seeds are resampled independently: A's seed spread (~0.1) shows
+    assert win.difference == pytest.approx(-1.0) and -1.2 < low < -1.0 < high < -0.8
     assert verdict_better(win.interval, lower_is_better=True) == REPRODUCED
     assert verdict_better(win.interval, lower_is_better=False) == NOT_REPRODUCED
     loss = paired(A, A + 0.5, rng())
@@ -43,13 +44,20 @@ def test_a_clear_win_a_clear_loss_and_a_straddle():
     assert verdict_better(straddle.interval, lower_is_better=False) == INCONCLUSIVE
 
 
-def test_seeds_are_averaged_per_clip_before_the_bootstrap_and_spread_is_reported():
+def test_when_seed_noise_dominates_the_interval_says_inconclusive_where_clips_alone_said_reproduced():
     b = A.copy()
     b[0] -= 2.0  # one seed much better, the others equal: the clip averages move by 2/3
     pair = paired(A, b, rng())
     assert pair.seeds == 3 and pair.clips == 8
     assert pair.difference == pytest.approx(-2.0 / 3.0)
-    assert pair.interval == pytest.approx((-2.0 / 3.0, -2.0 / 3.0))  # every clip moved alike
+    # clips alone: every clip moved alike, so the interval is a point on B's side and B "wins"
+    clips_only = bootstrap_interval((b - A).mean(0), rng())
+    assert clips_only == pytest.approx((-2.0 / 3.0, -2.0 / 3.0))
+    assert verdict_better(clips_only, lower_is_better=True) == REPRODUCED
+    # seeds resampled too: B's mean depends on how often its one good seed is drawn (0-3 times of 3)
+    low, high = pair.interval
+    assert low == pytest.approx(-2.0, abs=0.1) and high >= 0.0
+    assert verdict_better(pair.interval, lower_is_better=True) == INCONCLUSIVE
     assert pair.std_a == pytest.approx(float(np.std(A.mean(1))))
     assert pair.std_b > pair.std_a  # seed 0 of B is an outlier
     assert pair.mean_a == pytest.approx(A.mean()) and pair.mean_b == pytest.approx(b.mean())
@@ -94,3 +102,10 @@ def test_within_a_band_outside_it_and_overlapping_its_edge():
     assert verdict_better((math.nan, 1.0), lower_is_better=True) == INCONCLUSIVE
     with pytest.raises(ValueError, match="margin"):
         verdict_within((0.0, 1.0), 0.0, -1.0)
+
+
+def test_one_seed_resamples_only_the_clips():
+    one = paired(A[0], A[0] - 1.0, rng())  # (C,): one seed
+    assert one.seeds == 1 and one.interval == pytest.approx((-1.0, -1.0))
+    mixed = paired(A[0], A[0] + np.array([-1.0, 1.0] * 4), rng())
+    assert mixed.interval[0] < 0 < mixed.interval[1]

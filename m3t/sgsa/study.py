@@ -9,8 +9,9 @@ per seed of ``seeds`` (``sgsa_train.seed``; the rest of ``sgsa`` / ``sgsa_train`
 predicted counter and scored: DTW-JPE (mean of body and hands, SOKE raw cost, and its path-normalised form, which
 does not grow with the generated length) and the skeleton judge's sentence-level ROUGE-L (SL-T definition) on the
 sentence clips, plus corpus BLEU-4 per seed. Every model is scored twice: with its own (predicted) counter and with
-the ground-truth counter (the true length; parity with published PT numbers only). A comparison is the per-clip paired difference (B - A), averaged over
-seeds, with a 95 % percentile bootstrap interval over clips; "B better" needs the whole interval on B's side.
+the ground-truth counter (the true length; parity with published PT numbers only). A comparison is the mean over
+clips of B - A, each side averaged over its seeds, with a 95 % hierarchical bootstrap interval over seeds and clips
+(:func:`m3t.metrics.stats.paired`); "B better" needs the whole interval on B's side.
 
 Axis legend: C clips, R seeds.
 """
@@ -124,7 +125,7 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
 
 def claims_markdown(summary: dict) -> str:
     lines = [f"SGSA claims on the {summary['split']} split, seeds {summary['seeds']} (paired per clip, seed-averaged; "
-             "95 % bootstrap interval over clips). DTW-JPE: SOKE raw DTW cost (and path-normalised), mean of body and "
+             "95 % hierarchical bootstrap interval over seeds and clips). DTW-JPE: SOKE raw DTW cost (and path-normalised), mean of body and "
              "hands, mm; ROUGE-L: skeleton judge, SL-T definition, sentence level.", "",
              "| claim | counter | metric | A | B | mean A | mean B | B - A | 95 % interval | verdict |",
              "|---|---|---|---|---|---|---|---|---|---|"]
