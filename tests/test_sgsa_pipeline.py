@@ -24,7 +24,7 @@ from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_set
 from m3t.sgsa.train import losses, train_sgsa
 from m3t.training import worker_split
 from test_tokenizer_training import shards_dir  # noqa: F401 - the tiny fitted shards fixture
-from tiny_pipeline import assert_same_weights
+from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,8 +67,13 @@ def test_evaluate_scores_every_system_with_the_same_judge(trained, body):
                            progress=False)
     for system in ("pt", "sgsa"):
         for split in params.sgsa_evaluate.splits:
-            assert np.isfinite(summary[f"{system}/{split}/dtw_jpe_mean_m"])
-            assert summary[f"{system}/{split}/mean_frames"] >= 1
+            at = lambda key: summary[f"{system}/{split}/{key}"]  # noqa: E731
+            assert np.isfinite(at("dtw_jpe_mean_m"))
+            assert at("mean_frames") >= 1
+            # the selection figure: DTW-JPE times the mean length penalty max(U / U_ref, U_ref / U) >= 1
+            assert at("length_penalty") >= 1 and at("dtw_jpe_mean_x_length_m") == \
+                pytest.approx(at("dtw_jpe_mean_m") * at("length_penalty"))
+            assert 0 <= at("length_within_25") <= 1 and 0 <= at("stopped_rate") <= 1 and at("length_ratio_median") > 0
             assert f"{system}/{split}/bt/slt_bleu4" in summary
     # the ground truth goes through the same judge; no generate-smlm output here, so no SMLM row
     assert "ground_truth/test/bt/slt_bleu4" in summary and not any(k.startswith("smlm/") for k in summary)
@@ -94,8 +99,10 @@ def test_ground_truth_counter_gives_the_reference_length(trained, body):
     cfg = dataclasses.replace(params.sgsa_evaluate, counter="ground_truth", backtranslate=False, render_clips=0,
                               splits=("test",))
     summary = run_evaluate(params.sgsa, cfg, body, params.data, progress=False)
-    assert summary["pt/test/length_ratio"] == pytest.approx(1.0)
-    assert summary["sgsa/test/length_ratio"] == pytest.approx(1.0)
+    for system in ("pt", "sgsa"):
+        assert summary[f"{system}/test/length_ratio"] == pytest.approx(1.0)
+        assert summary[f"{system}/test/length_ratio_median"] == pytest.approx(1.0)
+        assert summary[f"{system}/test/length_within_25"] == 1.0 and summary[f"{system}/test/length_penalty"] == 1.0
 
 
 def samples_for(body, shards_dir, cfg):  # noqa: F811
@@ -130,6 +137,30 @@ def test_noise_augmentation_leaves_the_counter_and_scales_with_the_error_std(bod
     assert noise[..., :-1].std().item() == pytest.approx(0.5, rel=0.1)
 
 
+def test_noise_is_capped_at_the_coordinates_spread_so_it_cannot_feed_back_on_itself(body, shards_dir):  # noqa: F811
+    """PT's rule (rate x last epoch's error std) grows without bound once noise raises the error; the cap holds each
+    coordinate's noise std at ``noise_cap`` x its std over the train split's frames."""
+    from m3t.sgsa.train import augmentation_std, noise_ceiling
+
+    cfg = SGSAConfig()
+    _, _, _, samples = samples_for(body, shards_dir, cfg)
+    cpu = torch.device("cpu")
+    frames = np.concatenate([s.target for s in samples]).astype(np.float64)
+    ceiling = noise_ceiling(samples, 0.5, cpu)
+    torch.testing.assert_close(ceiling, torch.as_tensor(0.5 * frames.std(0), dtype=torch.float32))
+    assert noise_ceiling(samples, 0.0, cpu) is None  # no cap
+    small, huge = 0.01 * ceiling, 100.0 * ceiling
+    torch.testing.assert_close(augmentation_std(small, 5.0, ceiling, cpu), 5.0 * small)  # below the cap: PT's rule
+    torch.testing.assert_close(augmentation_std(huge, 5.0, ceiling, cpu), ceiling)  # capped
+    torch.testing.assert_close(augmentation_std(huge, 5.0, None, cpu), 5.0 * huge)  # noise_cap 0: PT's rule
+    assert augmentation_std(None, 5.0, ceiling, cpu) is None and augmentation_std(small, 0.0, ceiling, cpu) is None
+    # iterated, the capped rule stays bounded whatever the error does
+    std = small
+    for _ in range(10):
+        std = augmentation_std(std * 3.0, 5.0, ceiling, cpu)  # errors 3x the noise: the uncapped rule grows 15x
+    assert torch.all(std <= ceiling)
+
+
 def test_a_killed_run_resumes_to_the_same_model(body, shards_dir, tmp_path):  # noqa: F811
     cfg = SGSAConfig(encoder_width=16, encoder_ffn=32, encoder_heads=2, decoder_layers=1, decoder_heads=1,
                      dropout=0.1)
@@ -150,7 +181,8 @@ def test_a_killed_run_resumes_to_the_same_model(body, shards_dir, tmp_path):  # 
         assert torch.allclose(a, b, atol=1e-6)
 
 
-def record(run_id: str, layers: int, adjacency: int, seed: int, bleu4: float, jpe: float) -> RunRecord:
+def record(run_id: str, layers: int, adjacency: int, seed: int, bleu4: float, jpe: float,
+           counter: str = "predicted") -> RunRecord:
     metrics = {}
     for system, shift in (("pt", 0.0), ("sgsa", 1.0), ("ground_truth", 5.0), ("smlm", 2.0)):
         for split in ("dev", "test"):
@@ -160,7 +192,7 @@ def record(run_id: str, layers: int, adjacency: int, seed: int, bleu4: float, jp
             metrics[f"{system}/{split}/dtw_jpe_mean_m"] = jpe
     return RunRecord(run_id, "evaluate-sgsa", 0, "FINISHED",
                      {"sgsa.decoder_layers": str(layers), "sgsa.temporal_adjacency": str(adjacency)}, metrics, None,
-                     {"seed": str(seed)})
+                     {"seed": str(seed), "counter": counter})
 
 
 def test_tables_pool_seeds_and_follow_the_paper_layouts():
@@ -179,6 +211,12 @@ def test_tables_pool_seeds_and_follow_the_paper_layouts():
     for name in ("Progressive Transformers", "Skeletal Graph Self-Attention", "M3T SMLM", "Ground-truth"):
         assert name in tab3
     assert "definition 'slt'" in tab3
+    # every table says how its lengths were decided
+    assert all("Lengths: lengths decided by each model's own counter" in t for t in (tab2, tab3, "\n".join(tab1)))
+    truth = [record(r.run_id, int(r.params["sgsa.decoder_layers"]), int(r.params["sgsa.temporal_adjacency"]),
+                    int(r.tags["seed"]), 10.0, 1.0, counter="ground_truth") for r in records]
+    assert "Lengths: ground-truth lengths" in cross_table(truth) and "pooled" not in cross_table(truth)
+    assert "pooled" in layers_table(records + [dataclasses.replace(truth[0], run_id="z")])
     assert sweep_settings("1", [0, 1])[0] == {"sgsa.decoder_layers": 1, "sgsa.temporal_adjacency": 0,
                                               "sgsa_train.seed": 0}
     assert len(sweep_settings("2", [0])) == 5 and len(sweep_settings("1", [0, 1, 2])) == 15
@@ -200,6 +238,9 @@ def test_claims_study_pairs_clips_over_seeds(trained, body, tmp_path):
     assert all(len(v["bleu4"]) == 2 for by_name in summary["per_seed"].values() for v in by_name.values())
     assert all(v["length_ratio"] == [1.0, 1.0] for v in summary["per_seed"]["ground_truth"].values())
     assert "| claim | counter | metric |" in (tmp_path / "claims.md").read_text()
+    steady = summary["stability"]  # seeds [0] and [1] judged apart
+    assert steady["halves"] == [[0], [1]] and steady["compared"] == len(summary["comparisons"])
+    assert 0 <= steady["flipped"] <= steady["compared"] and "Stability: the verdicts" in (tmp_path / "claims.md").read_text()
     rng = np.random.default_rng(0)
     assert bootstrap_interval(np.full(5, 2.0), rng) == (2.0, 2.0)
     low, high = bootstrap_interval(np.array([-1.0, 1.0] * 10), rng)
@@ -241,7 +282,7 @@ def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
 def test_systems_trained_in_worker_processes_equal_one_process_on_their_threads(shards_dir, body, tmp_path):  # noqa: F811
     """``sgsa_train.workers: 2`` trains PT and SGSA in two spawned processes of one thread each (this process has
     two): the checkpoints, metrics.json and per-epoch records are those of one process that trains the systems
-    one after another on one thread."""
+    one after another on one thread, up to float rounding (:mod:`float_order`)."""
     runs = {}
     for workers, threads in ((1, 1), (2, 2)):
         torch.set_num_threads(threads)  # conftest restores the count
@@ -253,8 +294,40 @@ def test_systems_trained_in_worker_processes_equal_one_process_on_their_threads(
                            on_epoch=lambda system, record, epoch, out=records: out.append((system, epoch, record)))
         runs[workers] = (report, records, params.data.sgsa_dir)
     (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
-    assert one == two and len(one_records) == 2 * params.sgsa_train.epochs
-    assert one_records == two_records  # replayed in system order
-    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    # equal up to float rounding (tests/float_order.py)
+    assert_close_numbers(one, two, "report")
+    assert len(one_records) == 2 * params.sgsa_train.epochs
+    assert_close_numbers(one_records, two_records, "records")  # replayed in system order
+    assert_close_json(one_dir / "metrics.json", two_dir / "metrics.json")
     for name in ("pt.pt", "sgsa.pt"):
-        assert_same_weights(one_dir, two_dir, name)
+        assert_close_weights(one_dir, two_dir, name)
+
+
+def test_the_length_penalty_is_symmetric_in_too_long_and_too_short():
+    from m3t.sgsa.evaluate import length_penalty
+
+    assert length_penalty(10, 10) == 1.0
+    assert length_penalty(20, 10) == length_penalty(5, 10) == 2.0  # twice too long, twice too short
+    assert length_penalty(1, 40) == 40.0  # one frame for forty: the raw DTW cost alone would not see it
+    assert length_penalty(0, 10) == float("inf")
+
+
+def test_stability_counts_the_verdicts_that_flip_between_disjoint_seed_sets():
+    from m3t.sgsa.study import claims_markdown, stability
+
+    clips = np.linspace(1.0, 2.0, 12)
+    a = np.stack([clips] * 4)  # (R = 4, C) PT, the same on every seed
+    b = np.stack([clips - 0.5, clips - 0.5, clips + 0.5, clips + 0.5])  # SGSA: better on seeds 0, 1; worse on 2, 3
+    values = {"dtw_jpe_mean_m": None, "dtw_jpe_mean_pathnorm_m": None, "rouge_l": None}
+    per_clip = {"predicted": {"PT": {k: a for k in values}, "SGSA": {k: b for k in values}}}
+    steady = stability(per_clip, [("PT", "SGSA", "SGSA beats PT")], [0, 1, 2, 3])
+    assert steady["halves"] == [[0, 1], [2, 3]] and steady["compared"] == 3 and steady["flipped"] == 3
+    assert {(f["first"], f["second"]) for f in steady["flips"]} == {("SGSA better", "PT better"),
+                                                                    ("PT better", "SGSA better")}  # ROUGE: higher
+    same = stability({"predicted": {"PT": {k: a for k in values}, "SGSA": {k: a - 0.5 for k in values}}},
+                     [("PT", "SGSA", "SGSA beats PT")], [0, 1, 2, 3])
+    assert same["flipped"] == 0 and same["share_flipped"] == 0.0
+    assert stability(per_clip, [("PT", "SGSA", "c")], [0])["compared"] == 0  # one seed: nothing to compare
+    text = claims_markdown({"split": "test", "seeds": [0, 1, 2, 3], "comparisons": [], "per_seed": {},
+                            "stability": steady})
+    assert "differ in 3 of 3 rows (100 %)" in text

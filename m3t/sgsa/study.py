@@ -103,24 +103,46 @@ def run_study(model_cfg: SGSAConfig, train_cfg: SGSATrainConfig, body: BodyModel
     comparisons = [(names[0], names[1], "SGSA beats PT (Tab. 1, N = inf)")]
     if len(names) > 2:
         comparisons.append((names[1], names[2], f"N = {model_cfg.temporal_adjacency} beats N = inf (Tab. 2)"))
+    results = judge_comparisons(per_clip, comparisons, slice(None))
+    summary = {"split": split, "seeds": list(seeds), "variants": {n: dataclasses.asdict(c)
+                                                                  for n, c in variants(model_cfg).items()},
+               "per_seed": corpus, "comparisons": results, "stability": stability(per_clip, comparisons, seeds)}
+    out = Path(out_dir)
+    write_json(out / "claims.json", summary)
+    write_text(out / "claims.md", claims_markdown(summary))
+    return summary
+
+
+def judge_comparisons(per_clip: dict[str, dict[str, dict[str, np.ndarray]]],
+                      comparisons: list[tuple[str, str, str]], seeds: slice | list[int]) -> list[dict]:
+    """Every comparison (A, B, claim) on every metric and counter, on the seed rows ``seeds`` of the (R, C) values."""
     rng = np.random.default_rng(0)
     results = []
-    for counter in counters:
+    for counter, by_variant in per_clip.items():
         for a, b, claim in comparisons:
             for metric, lower in LOWER_IS_BETTER.items():
-                pair = paired(per_clip[counter][a][metric], per_clip[counter][b][metric], rng)
+                pair = paired(by_variant[a][metric][seeds], by_variant[b][metric][seeds], rng)
                 verdict = {REPRODUCED: f"{b} better", NOT_REPRODUCED: f"{a} better",
                            INCONCLUSIVE: "no difference established"}[verdict_better(pair.interval, lower)]
                 results.append({"claim": claim, "counter": counter, "a": a, "b": b, "metric": metric,
                                 "clips": pair.clips, "mean_a": pair.mean_a, "mean_b": pair.mean_b,
                                 "difference": pair.difference, "interval95": list(pair.interval), "verdict": verdict})
-    summary = {"split": split, "seeds": list(seeds), "variants": {n: dataclasses.asdict(c)
-                                                                  for n, c in variants(model_cfg).items()},
-               "per_seed": corpus, "comparisons": results}
-    out = Path(out_dir)
-    write_json(out / "claims.json", summary)
-    write_text(out / "claims.md", claims_markdown(summary))
-    return summary
+    return results
+
+
+def stability(per_clip: dict[str, dict[str, dict[str, np.ndarray]]], comparisons: list[tuple[str, str, str]],
+              seeds: list[int]) -> dict:
+    """The verdicts judged again on two disjoint halves of the seeds (the first half, the rest): how many flip.
+    A verdict that one retrain set gives and the other does not is not a finding. Needs >= 2 seeds."""
+    if len(seeds) < 2:
+        return {"halves": [], "compared": 0, "flipped": 0, "share_flipped": None, "flips": []}
+    half = len(seeds) // 2
+    first = judge_comparisons(per_clip, comparisons, list(range(half)))
+    second = judge_comparisons(per_clip, comparisons, list(range(half, len(seeds))))
+    flips = [{"claim": x["claim"], "counter": x["counter"], "metric": x["metric"], "first": x["verdict"],
+              "second": y["verdict"]} for x, y in zip(first, second) if x["verdict"] != y["verdict"]]
+    return {"halves": [list(seeds[:half]), list(seeds[half:])], "compared": len(first), "flipped": len(flips),
+            "share_flipped": len(flips) / len(first) if first else None, "flips": flips}
 
 
 def claims_markdown(summary: dict) -> str:
@@ -136,6 +158,14 @@ def claims_markdown(summary: dict) -> str:
         lines.append(f"| {r['claim']} | {r['counter']} | {metric} | {r['a']} | "
                      f"{r['b']} | {scale * r['mean_a']:.2f} | {scale * r['mean_b']:.2f} | "
                      f"{scale * r['difference']:.2f} | [{scale * low:.2f}, {scale * high:.2f}] | {r['verdict']} |")
+    steady = summary.get("stability") or {}
+    if steady.get("compared"):
+        first, second = steady["halves"]
+        lines += ["", f"Stability: the verdicts judged again on seeds {first} and on seeds {second} separately differ "
+                      f"in {steady['flipped']} of {steady['compared']} rows ({100 * steady['share_flipped']:.0f} %)"
+                      + (":" if steady["flips"] else ".")]
+        lines += [f"- {f['claim']}, {f['counter']} counter, {f['metric']}: {f['first']} / {f['second']}"
+                  for f in steady["flips"]]
     lines += ["", "Per seed (corpus BLEU-4 / ROUGE-L of the judge, DTW-JPE mm, generated / reference length):", ""]
     for counter, by_name in summary["per_seed"].items():
         for name, values in by_name.items():
