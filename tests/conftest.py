@@ -6,9 +6,10 @@ import os
 import pytest
 
 for _key, _value in {
-    # MKL's results depend on the memory alignment of its operands on AVX-512 machines (a batch's layout, another
-    # process's heap): its strict conditional-numerical-reproducibility mode makes them alignment-independent, so
-    # the tests that compare a worker process with this one compare bits. Read when MKL starts: before torch.
+    # MKL's results depend on the memory alignment of its operands (a batch's layout, another process's heap): its
+    # strict conditional-numerical-reproducibility mode makes them alignment-independent, so one computation run on
+    # this host at the same thread count in two processes gives the same bits. Across thread counts it does not
+    # (float_order.py says what is compared how). Read when MKL starts: before torch.
     "MKL_CBWR": "AUTO,STRICT",
     "DO_NOT_TRACK": "true",
     "MLFLOW_DISABLE_TELEMETRY": "true",

@@ -36,7 +36,7 @@ from m3t.tokenizers.checkpoint import save_tokenizer
 from m3t.tokenizers.config import TokenizerConfig
 from m3t.tokenizers.data import GROUPS, clip_sequences, normalisation
 from m3t.tokenizers.vae import MotionTokenizer
-from tiny_pipeline import assert_same_weights
+from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 TINY_PROBE = SLRConfig(layers=1, heads=2, ffn_mult=2, dropout=0.0, max_steps=32,
                        trim=TrimConfig(margin=1, min_frames=8))
@@ -273,7 +273,7 @@ def test_corpus_without_labelled_clips_is_refused(body, tmp_path):
 def test_variants_trained_in_worker_processes_equal_one_process_on_their_threads(data, body, tmp_path):
     """``slr_train.workers: 2`` trains the full and the face-less probe in two spawned processes of one thread
     each (this process has two): checkpoints, metrics.json and the per-epoch records are those of one process
-    that trains the variants one after another on one thread."""
+    that trains the variants one after another on one thread, up to float rounding (:mod:`float_order`)."""
     from m3t.training import worker_split
 
     runs = {}
@@ -289,10 +289,13 @@ def test_variants_trained_in_worker_processes_equal_one_process_on_their_threads
                                out=records: out.append((variant, epoch, record)))
         runs[workers] = (report, records, Path(where.models_dir) / "slr")
     (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
-    assert one == two and one_records == two_records and len(one_records) == 2 * TINY_TRAIN.epochs
-    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    # equal up to float rounding (tests/float_order.py): the features are computed here on 1 or 2 threads
+    assert_close_numbers(one, two, "report")
+    assert_close_numbers(one_records, two_records, "records")
+    assert len(one_records) == 2 * TINY_TRAIN.epochs
+    assert_close_json(one_dir / "metrics.json", two_dir / "metrics.json")
     for name in ("full.pt", "no_face.pt"):
-        assert_same_weights(one_dir, two_dir, name)
+        assert_close_weights(one_dir, two_dir, name)
     assert (two_dir / "confusion_dev_no_face.png").stat().st_size > 0  # drawn in the worker
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from m3t.tokenizers.pipeline import codebook_report
 from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
-from tiny_pipeline import assert_same_weights
+from float_order import assert_close_counts, assert_close_json, assert_close_numbers, assert_close_weights
 from precision_steps import bf16_and_fp32_steps
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -233,7 +234,7 @@ def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, bo
 def test_groups_trained_in_worker_processes_equal_one_process_on_their_threads(shards_dir, tmp_path, body):
     """``group_workers: 2`` trains the three groups in two spawned processes of one thread each (this process has
     two): checkpoints, metrics.json, the per-epoch records and the plots' counts are those of one process that
-    trains the groups one after another on one thread."""
+    trains the groups one after another on one thread, up to float rounding (:mod:`float_order`)."""
     from m3t.tokenizers.pipeline import group_workers, run_train_tokenizers
 
     params = load_params(ROOT / "params.yaml", preset="tiny", overrides={
@@ -250,13 +251,17 @@ def test_groups_trained_in_worker_processes_equal_one_process_on_their_threads(s
                                       on_epoch=lambda group, record, epoch, out=records: out.append((group, epoch, record)))
         runs[workers] = (report, records, data.tokenizers_dir)
     (one, one_records, one_dir), (two, two_records, two_dir) = runs[1], runs[2]
-    assert set(one) == {"body", "hand", "face"} and one == two
-    assert sorted(one_records, key=str) == sorted(two_records, key=str) and len(one_records) == 9
-    assert (one_dir / "metrics.json").read_bytes() == (two_dir / "metrics.json").read_bytes()
+    # equal up to float rounding (tests/float_order.py)
+    assert set(one) == {"body", "hand", "face"}
+    assert_close_numbers(one, two, "report")
+    order = lambda records: sorted(records, key=lambda r: r[:2])  # noqa: E731 - (group, epoch)
+    assert_close_numbers(order(one_records), order(two_records), "records")
+    assert len(one_records) == 9
+    assert_close_json(one_dir / "metrics.json", two_dir / "metrics.json")
     for group in one:
-        assert_same_weights(one_dir, two_dir, f"{group}.pt")
-        assert (one_dir / "plots" / f"tokens_{group}.json").read_bytes() == \
-            (two_dir / "plots" / f"tokens_{group}.json").read_bytes()
+        assert_close_weights(one_dir, two_dir, f"{group}.pt")
+        counts = [json.loads((d / "plots" / f"tokens_{group}.json").read_text()) for d in (one_dir, two_dir)]
+        assert_close_counts(*counts, f"tokens_{group}.json")
     with pytest.raises(ValueError, match="body_cfg"):  # a worker has to load the body model itself
         run_train_tokenizers(TINY_MODEL, cfg, body, data, progress=False)
     with pytest.raises(ValueError, match="pass the body model"):  # only workers load their own

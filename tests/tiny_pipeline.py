@@ -21,15 +21,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SPLITS = {"train": 4, "dev": 1, "test": 2}
 
 
-def assert_same_weights(one: Path, two: Path, name: str) -> None:
-    """Checkpoint ``name`` holds bit-equal weights in folders ``one`` and ``two`` (e.g. a training in a worker
-    process against the same training in this one)."""
-    import torch
-
-    a, b = (torch.load(folder / name, weights_only=False)["state_dict"] for folder in (one, two))
-    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
-
-
 @dataclass(frozen=True)
 class Workspace:
     root: Path
