@@ -61,6 +61,17 @@ def test_train_writes_both_systems_with_self_describing_checkpoints(trained):
     assert json.loads((out / "metrics.json").read_text())["train_clips"] == report["train_clips"] > 0
 
 
+def test_a_checkpoint_of_the_older_decoder_says_to_retrain(trained, tmp_path):
+    params, _ = trained
+    payload = torch.load(params.data.sgsa_dir / "sgsa.pt", weights_only=True)
+    torch.save({**payload, "format": "m3t-sgsa-v1"}, tmp_path / "old.pt")
+    with pytest.raises(ValueError, match=r"old\.pt: an SGSA / PT checkpoint of an older decoder .*dvc repro train-sgsa"):
+        load_sgsa(tmp_path / "old.pt")
+    torch.save({**payload, "format": "something-else"}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not an m3t SGSA / PT checkpoint"):
+        load_sgsa(tmp_path / "other.pt")
+
+
 def test_evaluate_scores_every_system_with_the_same_judge(trained, body):
     params, _ = trained
     summary = run_evaluate(params.sgsa, params.sgsa_evaluate, body, params.data, params.backtranslation,

@@ -20,7 +20,8 @@ from m3t.sgsa.config import SGSAConfig
 from m3t.sgsa.model import SGSADims, SGSAProduction
 from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
 
-FORMAT = "m3t-sgsa-v1"
+FORMAT = "m3t-sgsa-v2"  # v2: both decoders pre-norm with a frame embedding and a final LayerNorm
+OLDER_FORMATS = ("m3t-sgsa-v1",)
 STAGE = "train-sgsa"
 
 
@@ -60,7 +61,13 @@ def save_sgsa(path: str | os.PathLike, model: SGSAProduction, graph: SkeletonGra
 
 
 def load_sgsa(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSGSA:
-    payload = read_checkpoint(path, FORMAT, "SGSA / PT", STAGE, device)
+    try:
+        payload = read_checkpoint(path, FORMAT, "SGSA / PT", STAGE, device)
+    except ValueError as exc:
+        if any(repr(old) in str(exc) for old in OLDER_FORMATS):
+            raise ValueError(f"{path}: an SGSA / PT checkpoint of an older decoder (post-norm layers fed raw frames, "
+                             f"{FORMAT} expected); retrain it: `dvc repro {STAGE}`") from exc
+        raise
     cfg = SGSAConfig(**payload["config"])
     graph = SkeletonGraph.from_dict(payload["graph"])
     text_vocab = Vocabulary.from_dict(payload["text_vocabulary"])
