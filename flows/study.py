@@ -184,9 +184,12 @@ class _Planner:
 
     def add_smlm(self, seed: int) -> None:
         tokens = (f"{SHARED}.tokenize", self.tok)
-        for objective, kind in ((True, "translation"), (False, "production")):
+        # the objective's ablation at equal epochs (shared steps) and at equal production updates (added steps)
+        for objective, steps, kind in ((True, "shared", "translation"), (False, "shared", "production"),
+                                       (True, "added", "translation-added")):
             name = f"smlm-{kind}-s{seed}"
-            self.add(name, {"smlm_train": {"translation_objective": objective, "seed": seed}},
+            self.add(name, {"smlm_train": {"translation_objective": objective, "translation_steps": steps,
+                                           "seed": seed}},
                      [("train-smlm", tokens), ("generate-smlm", (f"{name}.train-smlm", *tokens)),
                       ("evaluate-smlm", (f"{name}.generate-smlm", f"{SHARED}.train-backtranslation"))],
                      ("tokenizers_dir", "backtranslation_dir"))

@@ -27,7 +27,7 @@ def _write(path: Path, rows: list[dict]) -> None:
 
 
 def smlm_run(tmp: Path, run_id: str, objective: bool, seed: int, body: np.ndarray, version: str = "v1",
-             start: int = 0) -> RunRecord:
+             start: int = 0, steps: str | None = None) -> RunRecord:
     folder = tmp / run_id
     _write(folder / "per_clip.csv", [{"clip_id": c, "group": "synthetic/ASL-SYN", "steps": 9, "stopped": 1.0,
                                       "dtw_jpe_body_m": float(v), "dtw_jpe_hand_m": float(v) / 2}
@@ -36,7 +36,8 @@ def smlm_run(tmp: Path, run_id: str, objective: bool, seed: int, body: np.ndarra
                                             "hypothesis": "i read", "bleu4": 0.0, "rouge_l": 30.0 + float(v)}
                                            for c, v in zip(CLIPS[:4], body)])
     return RunRecord(run_id, "evaluate-smlm", start, "FINISHED", {"smlm_train.seed": str(seed)}, {}, folder,
-                     {"translation_objective": str(objective), "seed": str(seed), "data_version": version})
+                     {"translation_objective": str(objective), "seed": str(seed), "data_version": version,
+                      **({} if steps is None else {"translation_steps": steps})})
 
 
 def smlm_runs(tmp: Path, seeds: int, gain: float, version: str = "v1") -> list[RunRecord]:
@@ -171,3 +172,20 @@ def test_a_claims_interval_does_not_depend_on_the_other_claims_judged(tmp_path):
     assert both[keys[0]]["interval95"] == reverse[keys[0]]["interval95"]
     other_seed = claims_table(records, claims=only(keys[1]), seed=1)[0]
     assert other_seed["interval95"] != alone["interval95"]  # the draws do come from the seed
+
+
+def test_the_objective_at_equal_production_updates_pairs_added_steps_runs_with_production_only(tmp_path):
+    """translation_steps added (the objective's steps on top of production's) is its own variant: it answers the
+    equal-updates claim, never the equal-epochs one; runs without the tag (older code) count as shared."""
+    runs = smlm_runs(tmp_path, 3, gain=0.5)  # shared (untagged) runs with a clear gain
+    g = np.random.default_rng(1)
+    added = [smlm_run(tmp_path, f"pa{s}", True, s, 3.0 + g.random(len(CLIPS)) + 1.0, steps="added", start=100 + s)
+             for s in range(3)]  # added steps: worse than production only
+    records = sorted(runs + added, key=lambda r: -r.start_time)
+    shared = claims_table(records, claims=only("smlm-objective-dtw-body"))[0]
+    assert shared["verdict"] == "reproduced" and sorted(shared["runs_b"]) == ["pt0v1", "pt1v1", "pt2v1"]
+    equal = claims_table(records, claims=only("smlm-objective-dtw-body-equal-updates"))[0]
+    assert sorted(equal["runs_a"]) == ["po0v1", "po1v1", "po2v1"] and sorted(equal["runs_b"]) == ["pa0", "pa1", "pa2"]
+    assert equal["verdict"] == "not reproduced" and equal["b"] == "production + translation (added steps)"
+    missing = claims_table(runs, claims=only("smlm-objective-bt-equal-updates"))[0]
+    assert missing["verdict"] == "not run" and "translation_steps=added" in missing["note"]

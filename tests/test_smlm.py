@@ -226,6 +226,45 @@ def test_production_only_never_trains_the_text_head(vocab, tmp_path):
     assert "train_translation_loss" not in result.history[-1] and "train_production_loss" in result.history[-1]
 
 
+def test_added_translation_steps_keep_every_production_step_of_the_objective_free_run(vocab, monkeypatch):
+    """translation_steps shared: a translation batch replaces a production step (production gets ~1 - p of the
+    epoch); added: each chunk is a production step, followed by a translation step on the same chunk with
+    probability p / (1 - p): production gets every step the objective-free run gets."""
+    from m3t.smlm.data import ProductionBatch, TranslationBatch
+    from m3t.smlm.train import epoch_batches, optimizer_steps_per_epoch
+
+    examples = make_examples(vocab) * 4
+    n = -(-len(examples) // 2)  # chunks of 2 examples: the objective-free run's steps
+    base = SMLMTrainConfig(batch_size=2, device="cpu")
+    kinds = lambda cfg, epoch=0: [type(b) for b in epoch_batches(examples, vocab, cfg, epoch)]  # noqa: E731
+    off = kinds(dataclasses.replace(base, translation_objective=False))
+    assert off == [ProductionBatch] * n
+    shared = kinds(base)
+    assert len(shared) == n and 0 < shared.count(TranslationBatch) < n  # steps taken from production
+    added = kinds(dataclasses.replace(base, translation_steps="added"))  # p = 0.5: one translation per production
+    assert added == [ProductionBatch, TranslationBatch] * n
+    quarter = [kinds(dataclasses.replace(base, translation_steps="added", translation_prob=0.25), e) for e in range(20)]
+    assert all(k.count(ProductionBatch) == n for k in quarter)
+    share = sum(k.count(TranslationBatch) for k in quarter) / sum(len(k) for k in quarter)
+    assert 0.18 < share < 0.32  # p = 0.25 of all steps, on average
+    # a translation step trains on the chunk of the production step it follows
+    import m3t.smlm.train as train_module
+
+    seen = []
+    monkeypatch.setattr(train_module, "production_batch", lambda chunk, v: seen.append(("p", [id(e) for e in chunk])))
+    monkeypatch.setattr(train_module, "translation_batch", lambda chunk, v: seen.append(("t", [id(e) for e in chunk])))
+    list(epoch_batches(examples, vocab, dataclasses.replace(base, translation_steps="added"), 0))
+    assert [k for k, _ in seen] == ["p", "t"] * n and all(seen[i][1] == seen[i + 1][1] for i in range(0, 2 * n, 2))
+    assert optimizer_steps_per_epoch(len(examples), dataclasses.replace(base, translation_steps="added"), 1) == 2 * n
+    assert optimizer_steps_per_epoch(len(examples), base, 1) == n
+    assert optimizer_steps_per_epoch(len(examples), dataclasses.replace(base, translation_objective=False,
+                                                                        translation_steps="added"), 1) == n
+    with pytest.raises(ValueError, match="translation_prob 0.6 with translation_steps added"):
+        SMLMTrainConfig(translation_steps="added", translation_prob=0.6)
+    with pytest.raises(ValueError, match="translation_steps 'both' unknown"):
+        SMLMTrainConfig(translation_steps="both")
+
+
 def test_bf16_autocast_step_on_cpu(vocab):
     """bf16 really runs the heads in bfloat16 (their logits are bf16, the loss is near the fp32 loss of the same
     model and batch but not bit-equal to it); a silently disabled autocast fails here."""

@@ -64,8 +64,10 @@ def test_plan_has_every_variant_the_claims_need_once_in_order_under_root(params,
     tokenizers = Counter((p.tokenizer.quantizer, p.tokenizer_train.batch_size, p.tokenizer_train.seed)
                          for _, p in of["train-tokenizers"])
     assert tokenizers == Counter((q, b, s) for s in seeds for q, b in (("fsq", 16), ("vq", 16), ("fsq", 128)))
-    smlm = Counter((p.smlm_train.translation_objective, p.smlm_train.seed) for _, p in of["evaluate-smlm"])
-    assert smlm == Counter((o, s) for s in seeds for o in (True, False))
+    smlm = Counter((p.smlm_train.translation_objective, p.smlm_train.translation_steps, p.smlm_train.seed)
+                   for _, p in of["evaluate-smlm"])
+    assert smlm == Counter((o, steps, s) for s in seeds for o, steps in ((True, "shared"), (False, "shared"),
+                                                                         (True, "added")))
     assert Counter(p.slr_train.seed for _, p in of["evaluate-slr"]) == Counter(seeds)
     sgsa = Counter((p.sgsa.temporal_adjacency, p.sgsa_train.systems, p.sgsa_train.seed) for _, p in of["evaluate-sgsa"])
     assert sgsa == Counter([(0, ("sgsa",), s) for s in seeds] + [(1, ("pt", "sgsa"), s) for s in seeds])

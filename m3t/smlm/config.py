@@ -53,9 +53,23 @@ class SMLMTrainConfig:
     grad_clip: float = 1.0
     translation_objective: bool = True
     translation_prob: float = 0.5
+    # shared: each step is a translation batch with probability translation_prob, so production gets 1 - p of an
+    # epoch's steps (the objective costs production updates: the ablation at equal epochs); added: every batch is a
+    # production step and a translation step on the same batch follows with probability p / (1 - p) (p <= 0.5), so
+    # production gets as many updates as without the objective (the ablation at equal production updates)
+    translation_steps: Literal["shared", "added"] = "shared"
     label_smoothing: float = 0.0
     eval_every: int = 20
     eval_max_clips: int = 64  # dev clips scored per evaluation, first ones of the first corpus on; 0 = all
     seed: int = 0
     device: str = "auto"
     precision: Literal["fp32", "bf16"] = "fp32"
+
+    def __post_init__(self) -> None:
+        if self.translation_steps not in ("shared", "added"):
+            raise ValueError(f"smlm_train.translation_steps {self.translation_steps!r} unknown; allowed: shared, added")
+        if not 0.0 <= self.translation_prob <= 1.0:
+            raise ValueError(f"smlm_train.translation_prob: expected in [0, 1], got {self.translation_prob}")
+        if self.translation_steps == "added" and self.translation_prob > 0.5:
+            raise ValueError(f"smlm_train.translation_prob {self.translation_prob} with translation_steps added: "
+                             "expected <= 0.5 (at most one translation step per production step)")

@@ -141,7 +141,8 @@ def train_and_log(model_cfg: SMLMConfig, cfg: SMLMTrainConfig, body_cfg: BodyCon
     body = load_body_model(body_cfg)
     if not dist_ctx.is_main:
         return run_train_smlm(model_cfg, cfg, body, data, dist_ctx=dist_ctx, progress=False)
-    tags = {"translation_objective": str(cfg.translation_objective), "d_model": str(model_cfg.d_model),
+    tags = {"translation_objective": str(cfg.translation_objective), "translation_steps": cfg.translation_steps,
+            "d_model": str(model_cfg.d_model),
             "body_model": body_cfg.model, "corpus": ",".join(data.train_corpora), "seed": str(cfg.seed)}
     with start_run(experiment, "train-smlm", tags=tags, variant=variant_name(to_dict(cfg))) as run:
         run.log_params(section_params(smlm=model_cfg, smlm_train=cfg, data=data))
@@ -225,7 +226,13 @@ def generate(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, progre
 
 # --------------------------------------------------------------------------------------- evaluate
 def variant_name(train_config: dict) -> str:
-    return "production + translation" if train_config.get("translation_objective", True) else "production only"
+    """The ablation's row name of a (checkpoint's) train config: production only, or production + translation
+    (with "(added steps)" at equal production updates)."""
+    objective = bool(train_config.get("translation_objective", True))
+    if not objective:
+        return "production only"
+    added = train_config.get("translation_steps", "shared") == "added"
+    return "production + translation" + (" (added steps)" if added else "")
 
 
 def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
@@ -293,7 +300,7 @@ def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig
                      judge: BackTranslationConfig | None = None) -> dict[str, float]:
     report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg), judge)
     tags = {"split": cfg.split, "translation_objective": str(train_config.get("translation_objective", True)),
-            "body_model": body_cfg.model, "seed": str(train_config.get("seed", ""))}
+            "translation_steps": str(train_config.get("translation_steps", "shared")), "body_model": body_cfg.model, "seed": str(train_config.get("seed", ""))}
     if cfg.backtranslate:
         tags["text_metric_definition"] = SLT_DEFINITION
     with start_run(experiment, "evaluate-smlm", tags=tags, variant=variant_name(train_config)) as run:

@@ -1,6 +1,7 @@
 """Training the SMLM (M3T Sec. 3.3, App. 0.D.2): AdamW, cosine 2e-4 -> 1e-6, cross-entropy on both tasks,
 alternated per batch (translation with probability ``translation_prob``; ``translation_objective: false``
-trains production only, the ablation of Tab. 1), the checkpoint with the lowest mean validation DTW-JPE
+trains production only, the ablation of Tab. 1; ``translation_steps: added`` adds the translation steps to the
+production ones instead of taking them from the epoch, the same ablation at equal production updates), the checkpoint with the lowest mean validation DTW-JPE
 kept as ``best``, and a resumable ``last`` written at most every 30 s and at the end: a run killed part-way and started
 again with the same config, vocabulary and data continues the same loss curve (:func:`run_key` names it).
 
@@ -79,14 +80,33 @@ def train_step(model: SignMotionLM, batch: ProductionBatch | TranslationBatch, o
 
 def epoch_batches(examples: Sequence[Example], vocab: SignVocabulary, cfg: SMLMTrainConfig, epoch: int,
                   rank: int = 0, world_size: int = 1):
-    """This rank's batches of one epoch: shuffled by (seed, epoch), each one task drawn with ``translation_prob``."""
+    """This rank's batches of one epoch, shuffled by (seed, epoch). ``translation_steps`` shared: each chunk of
+    examples is one step, a translation batch with probability ``translation_prob``; added: each chunk is a
+    production step, followed by a translation step on the same chunk with probability p / (1 - p). The tasks are
+    drawn from a generator seeded alike on every rank, so the ranks stay in lockstep."""
     order = np.random.default_rng([cfg.seed, epoch]).permutation(len(examples))
     tasks = np.random.default_rng([cfg.seed, epoch, 1])
     chunks = [order[i: i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
+    added = cfg.translation_steps == "added"
+    p = cfg.translation_prob / (1.0 - cfg.translation_prob) if added and cfg.translation_prob < 1 else \
+        cfg.translation_prob
     for step in range(steps_per_epoch(len(examples), cfg.batch_size, world_size)):
-        translate = cfg.translation_objective and tasks.random() < cfg.translation_prob  # same on every rank
+        translate = cfg.translation_objective and tasks.random() < p  # same on every rank
         batch = [examples[j] for j in chunks[step * world_size + rank]]
-        yield translation_batch(batch, vocab) if translate else production_batch(batch, vocab)
+        if added:
+            yield production_batch(batch, vocab)
+            if translate:
+                yield translation_batch(batch, vocab)
+        else:
+            yield translation_batch(batch, vocab) if translate else production_batch(batch, vocab)
+
+
+def optimizer_steps_per_epoch(n_examples: int, cfg: SMLMTrainConfig, world_size: int = 1) -> int:
+    """Optimiser steps of an epoch on one rank (expected, with added translation steps): the LR schedule's unit."""
+    chunks = steps_per_epoch(n_examples, cfg.batch_size, world_size)
+    if cfg.translation_objective and cfg.translation_steps == "added":
+        return round(chunks / (1.0 - cfg.translation_prob))
+    return chunks
 
 
 def steps_per_epoch(n_examples: int, batch_size: int, world_size: int = 1) -> int:
@@ -136,7 +156,8 @@ def train_smlm(
     if per_epoch == 0:
         raise ValueError(f"{len(train)} examples make no full batch for {dist_ctx.world_size} ranks; lower batch_size")
     optim = adam(model.parameters(), device, decoupled=True, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    scheduler = warmup_cosine(optim, cfg.epochs, per_epoch, cfg.warmup_steps, "steps", cfg.min_lr)
+    scheduler = warmup_cosine(optim, cfg.epochs, optimizer_steps_per_epoch(len(train), cfg, dist_ctx.world_size),
+                              cfg.warmup_steps, "steps", cfg.min_lr)
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
     tail = EpochTail(
         cfg.epochs, cfg.eval_every,
