@@ -144,6 +144,34 @@ def claims(runs: list[RunRecord]) -> str:
     return f"<p class=note>{note}</p>" + h.table(header, body, "claims")
 
 
+def sgsa_study(path: Path) -> str:
+    """The SGSA study's claims (``m3t sgsa-study``: ``claims.json``): verdicts with their seeds and hierarchical
+    intervals, and how many verdicts flip between two disjoint halves of the seeds."""
+    if not path.exists():
+        return h.empty("No SGSA study yet: run <code>m3t sgsa-study --seeds 0 1 2 3 4</code>.")
+    summary = json.loads(path.read_text())
+    body = []
+    for r in summary.get("comparisons", []):
+        scale = 1000.0 if r["metric"].endswith("_m") else 1.0
+        low, high = r["interval95"]
+        body.append([r["claim"], r["counter"], r["metric"].removesuffix("_m") + ("_mm" if scale > 1 else ""),
+                     f"{r['a']} {scale * r['mean_a']:.4g} -> {r['b']} {scale * r['mean_b']:.4g}",
+                     f"{scale * r['difference']:.3g} [{scale * low:.3g}, {scale * high:.3g}]", r["verdict"]])
+    steady = summary.get("stability") or {}
+    if steady.get("compared"):
+        first, second = steady["halves"]
+        stability = (f"Judged again on seeds {first} and on seeds {second} separately, {steady['flipped']} of "
+                     f"{steady['compared']} verdicts flip ({100 * steady['share_flipped']:.0f} %): a verdict that "
+                     "one set of retrains gives and the other does not is not a finding.")
+    else:
+        stability = "One seed: no stability check (it needs two disjoint seed sets)."
+    note = (f"SGSA study on the {summary.get('split', '?')} split, seeds {summary.get('seeds', [])}: B - A of the "
+            "seed-averaged means over clips, 95 % hierarchical bootstrap over each side's seeds and the clips. "
+            + stability)
+    header = ["claim", "counter", "metric", "A -> B", "B - A [95 % interval]", "verdict"]
+    return f"<h2>SGSA study</h2><p class=note>{h.esc(note)}</p>" + h.table(header, body, "sgsa-study")
+
+
 def _token_counts(record: RunRecord) -> dict[str, dict]:
     if record.artifact_dir is None:
         return {}
