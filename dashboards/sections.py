@@ -18,7 +18,7 @@ from m3t.backtranslation.table import backtranslation_table
 from m3t.claims import claims_table
 from m3t.config import Params
 from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
-from m3t.sgsa.table import adjacency_table, cross_table, layers_table
+from m3t.sgsa.table import adjacency_table, cross_table, in_display_units, layers_table
 from m3t.slr.table import recognition_table
 from m3t.smlm.table import production_table
 from m3t.tokenizers.ablation import ablation_table
@@ -152,11 +152,9 @@ def sgsa_study(path: Path) -> str:
     summary = json.loads(path.read_text())
     body = []
     for r in summary.get("comparisons", []):
-        scale = 1000.0 if r["metric"].endswith("_m") else 1.0
-        low, high = r["interval95"]
-        body.append([r["claim"], r["counter"], r["metric"].removesuffix("_m") + ("_mm" if scale > 1 else ""),
-                     f"{r['a']} {scale * r['mean_a']:.4g} -> {r['b']} {scale * r['mean_b']:.4g}",
-                     f"{scale * r['difference']:.3g} [{scale * low:.3g}, {scale * high:.3g}]", r["verdict"]])
+        metric, mean_a, mean_b, difference, low, high = in_display_units(r)
+        body.append([r["claim"], r["counter"], metric, f"{r['a']} {mean_a:.4g} -> {r['b']} {mean_b:.4g}",
+                     f"{difference:.3g} [{low:.3g}, {high:.3g}]", r["verdict"]])
     steady = summary.get("stability") or {}
     if steady.get("compared"):
         first, second = steady["halves"]

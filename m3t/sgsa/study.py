@@ -32,6 +32,7 @@ from m3t.sgsa.checkpoint import load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import make_samples, vocabularies
 from m3t.sgsa.evaluate import generate, score_production
+from m3t.sgsa.table import in_display_units
 from m3t.sgsa.train import run_key, train_sgsa
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import production_data_version, read_production_split
@@ -152,12 +153,9 @@ def claims_markdown(summary: dict) -> str:
              "| claim | counter | metric | A | B | mean A | mean B | B - A | 95 % interval | verdict |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in summary["comparisons"]:
-        scale = 1000.0 if r["metric"].endswith("_m") else 1.0
-        low, high = r["interval95"]
-        metric = r["metric"].removesuffix("_m") + "_mm" if scale > 1 else r["metric"]
-        lines.append(f"| {r['claim']} | {r['counter']} | {metric} | {r['a']} | "
-                     f"{r['b']} | {scale * r['mean_a']:.2f} | {scale * r['mean_b']:.2f} | "
-                     f"{scale * r['difference']:.2f} | [{scale * low:.2f}, {scale * high:.2f}] | {r['verdict']} |")
+        metric, mean_a, mean_b, difference, low, high = in_display_units(r)
+        lines.append(f"| {r['claim']} | {r['counter']} | {metric} | {r['a']} | {r['b']} | {mean_a:.2f} | {mean_b:.2f} | "
+                     f"{difference:.2f} | [{low:.2f}, {high:.2f}] | {r['verdict']} |")
     steady = summary.get("stability") or {}
     if steady.get("compared"):
         first, second = steady["halves"]

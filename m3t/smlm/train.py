@@ -88,8 +88,7 @@ def epoch_batches(examples: Sequence[Example], vocab: SignVocabulary, cfg: SMLMT
     tasks = np.random.default_rng([cfg.seed, epoch, 1])
     chunks = [order[i: i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
     added = cfg.translation_steps == "added"
-    p = cfg.translation_prob / (1.0 - cfg.translation_prob) if added and cfg.translation_prob < 1 else \
-        cfg.translation_prob
+    p = cfg.translation_prob / (1.0 - cfg.translation_prob) if added else cfg.translation_prob  # added: p <= 0.5
     for step in range(steps_per_epoch(len(examples), cfg.batch_size, world_size)):
         translate = cfg.translation_objective and tasks.random() < p  # same on every rank
         batch = [examples[j] for j in chunks[step * world_size + rank]]
