@@ -177,6 +177,10 @@ def _token_counts(record: RunRecord) -> dict[str, dict]:
     return {json.loads(f.read_text())["group"]: json.loads(f.read_text()) for f in files}
 
 
+def _fmt_metric(value: float | None, digits: int) -> str:
+    return "-" if value is None or value != value else f"{value:.{digits}f}"
+
+
 def codebooks(runs: list[RunRecord], params: Params) -> str:
     import plotly.graph_objects as go
 
@@ -189,9 +193,18 @@ def codebooks(runs: list[RunRecord], params: Params) -> str:
                              y=[r.metrics.get(f"{g}/utilisation_pct") for g in groups]) for q, r in newest.items()])
     bars.update_layout(title="codebook utilisation on the test split (%)", barmode="group", yaxis_range=[0, 100])
     out = [f"<figure>{_figure(bars, 'utilisation')}</figure>"]
+    # utilisation saturates when tokens barely outnumber codes: the columns beside it say how far it can be read
+    stats = (("util %", "utilisation_pct", 1), ("perplexity / K", "perplexity_per_code", 2),
+             ("count SD", "count_sd", 1), ("tokens / K", "tokens_per_code", 1))
+    rows = [[q.upper(), g] + [_fmt_metric(r.metrics.get(f"{g}/{key}"), digits) for _, key, digits in stats]
+            for q, r in newest.items() for g in groups]
+    out.append(h.table(["quantizer", "group"] + [name for name, _, _ in stats], rows, "codebook-stats",
+                       "test split; a uniform code distribution has perplexity / K = 1, and at 10 tokens per code "
+                       "leaves under 0.005 % of the codes unused"))
     if len(newest) < 2:
-        out.append("<p class=note>Only one quantizer in the store; add the other with "
-                   "<code>dvc exp run -S tokenizer.quantizer=vq</code> (or <code>fsq</code>) to compare them.</p>")
+        out.append("<p class=note>Only one quantizer in the store; add the others with "
+                   "<code>m3t ablate-tokenizers</code> or <code>dvc exp run -S tokenizer.quantizer=vq</code> "
+                   "(<code>vq_ema</code>, <code>vq_plain</code>, <code>fsq</code>) to compare them.</p>")
     counts = {q: _token_counts(r) for q, r in newest.items()}
     for group in groups:
         traces = []

@@ -36,7 +36,8 @@ from m3t.config import Params, load_params, merge, params_from_dict, preset_over
 from m3t.experiment import absolute_uri, fetch_runs, to_dict, tracking_uri
 
 SHARED = "shared"
-TOKENIZER_SETTINGS = (("fsq", 16), ("vq", 16), ("fsq", 128))  # (quantizer, batch size) of M3T Tab. 3's claims
+# (quantizer, batch size) of M3T Tab. 3's claims: FSQ against the three VQs, and FSQ at batch 128
+TOKENIZER_SETTINGS = (("fsq", 16), ("vq", 16), ("vq_ema", 16), ("vq_plain", 16), ("fsq", 128))
 Runner = Callable[[Sequence[str], Mapping[str, str], Path], int]  # (argv, env, log file) -> exit code
 
 

@@ -387,12 +387,18 @@ def test_codebook_stats_of_no_tokens_are_all_zero_and_of_uniform_use_are_the_cod
     from m3t.metrics.codebook import codebook_stats, token_counts
 
     assert codebook_stats(np.zeros(8, dtype=np.int64)) == {"utilisation_pct": 0.0, "count_sd": 0.0,
-                                                           "perplexity": 0.0, "tokens": 0.0}
+                                                           "perplexity": 0.0, "perplexity_per_code": 0.0,
+                                                           "tokens": 0.0, "tokens_per_code": 0.0}
     stats = codebook_stats(token_counts([np.array([0, 1, 1, 3]), np.array([[3, 3], [1, 0]])], 4))
     assert stats["utilisation_pct"] == 75.0 and stats["tokens"] == 8.0
     assert stats["count_sd"] == pytest.approx(np.std([2, 3, 0, 3]))
     probs = np.array([2, 3, 3]) / 8
     assert stats["perplexity"] == pytest.approx(np.exp(-(probs * np.log(probs)).sum()))
+    assert stats["perplexity_per_code"] == pytest.approx(stats["perplexity"] / 4) and stats["tokens_per_code"] == 2.0
+    # a skewed histogram: every code used (100 %), but perplexity / K tells it from a uniform one
+    skewed = codebook_stats(np.array([97, 1, 1, 1]))
+    assert skewed["utilisation_pct"] == 100.0 and skewed["perplexity_per_code"] < 0.35
+    assert codebook_stats(np.full(4, 25))["perplexity_per_code"] == pytest.approx(1.0)
     with pytest.raises(ValueError, match=r"token index out of range \[0, 4\): \[0, 4\]"):
         token_counts([np.array([0, 4])], 4)
 

@@ -1049,9 +1049,9 @@ def test_fsq_refuses_bad_levels_keeps_no_state_and_names_a_channel_mismatch():
 
 
 def test_vq_names_its_code_dim_and_the_latents_channels_on_a_mismatch():
-    from m3t.tokenizers.vq import EMAResetVQ
+    from m3t.tokenizers.vq import EMAVQ
 
-    vq = EMAResetVQ(8, 4)
+    vq = EMAVQ(8, 4)
     with pytest.raises(ValueError, match=r"^VQ with code dim 4 got latents with 3 channels$"):
         vq(torch.zeros(2, 5, 3))
 
@@ -1159,9 +1159,9 @@ def test_vq_defaults_are_the_papers_and_one_training_step_is_an_ema_update_by_ha
     """T2M-GPT / SOKE's VQ (M3T's VQ baseline): decay 0.99 and commitment weight 0.02 by default, as in the
     ``tokenizer`` config; a training step moves each code's EMA statistics by ``decay`` and the loss is
     ``beta * mse(z, q)`` against the codebook before the update."""
-    from m3t.tokenizers.vq import EMAResetVQ
+    from m3t.tokenizers.vq import EMAVQ
 
-    vq = EMAResetVQ(4, 3)
+    vq = EMAVQ(4, 3)
     cfg = TokenizerConfig()
     assert (vq.decay, vq.beta, vq.reset_threshold) == (cfg.vq_decay, cfg.vq_beta, 1.0) == (0.99, 0.02, 1.0)
     codebook = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])

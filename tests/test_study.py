@@ -63,7 +63,8 @@ def test_plan_has_every_variant_the_claims_need_once_in_order_under_root(params,
           for stage in ("train-tokenizers", "evaluate-smlm", "evaluate-slr", "evaluate-sgsa")}
     tokenizers = Counter((p.tokenizer.quantizer, p.tokenizer_train.batch_size, p.tokenizer_train.seed)
                          for _, p in of["train-tokenizers"])
-    assert tokenizers == Counter((q, b, s) for s in seeds for q, b in (("fsq", 16), ("vq", 16), ("fsq", 128)))
+    assert tokenizers == Counter((q, b, s) for s in seeds for q, b in (("fsq", 16), ("vq", 16), ("vq_ema", 16),
+                                                                              ("vq_plain", 16), ("fsq", 128)))
     smlm = Counter((p.smlm_train.translation_objective, p.smlm_train.translation_steps, p.smlm_train.seed)
                    for _, p in of["evaluate-smlm"])
     assert smlm == Counter((o, steps, s) for s in seeds for o, steps in ((True, "shared"), (False, "shared"),

@@ -22,7 +22,7 @@ from m3t.tokenizers.fsq import FSQ
 from m3t.tokenizers.config import TokenizerConfig, VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters
 from m3t.training import lr_factor
-from m3t.tokenizers.vq import EMAResetVQ
+from m3t.tokenizers.vq import EMAVQ, PlainVQ
 
 PAPER_LEVELS = [(5, 5, 4), (6, 6, 5), (6, 6, 6)]
 
@@ -58,7 +58,7 @@ def test_fsq_rejects_out_of_range_indices():
         FSQ((5, 5, 4)).indices_to_codes(torch.tensor([100]))
 
 
-@pytest.mark.parametrize("quantizer", ["fsq", "vq"])
+@pytest.mark.parametrize("quantizer", ["fsq", "vq", "vq_ema", "vq_plain"])
 def test_vae_shapes_and_straight_through_gradient_reaches_the_encoder(quantizer):
     torch.manual_seed(0)
     cfg = VAEConfig(input_dim=12, levels=(5, 5, 4), quantizer=quantizer, width=16, depth=2, vq_code_dim=4)
@@ -85,7 +85,7 @@ def test_decode_of_encode_matches_forward():
 
 def test_vq_dead_codes_are_reset_to_batch_latents():
     torch.manual_seed(0)
-    vq = EMAResetVQ(codebook_size=8, dim=2, decay=0.5)
+    vq = EMAVQ(codebook_size=8, dim=2, decay=0.5)
     vq.train()
     data = torch.randn(64, 2)
     vq(data)  # initialises the codebook from the data
@@ -102,8 +102,50 @@ def test_vq_dead_codes_are_reset_to_batch_latents():
     assert (vq.codebook.abs() < 10).all(), "no code is left stranded far from the data"
 
 
+def test_vq_without_reset_leaves_dead_codes_where_they_died():
+    torch.manual_seed(0)
+    vq = EMAVQ(codebook_size=8, dim=2, decay=0.5, reset=False)
+    vq.train()
+    data = torch.randn(64, 2)
+    vq(data)
+    vq.codebook[:4] = 100.0  # the same stranded codes as above: never chosen again
+    vq.ema_sum[:4] = 100.0 * vq.ema_count[:4, None]
+    for _ in range(40):  # long enough for their counts to underflow the division (0.5^40)
+        out = vq(data)
+    assert vq.last_resets == 0 and torch.equal(vq.codebook[:4], torch.full((4, 2), 100.0))
+    assert int(out.indices.max()) >= 4 and int(out.indices.min()) >= 4  # only the live codes are chosen
+    assert torch.isfinite(vq.codebook).all()
+
+
+def test_plain_vq_learns_its_codebook_by_gradient_and_resets_nothing():
+    torch.manual_seed(0)
+    vq = PlainVQ(codebook_size=4, dim=2, beta=0.25)
+    vq.train()
+    data = torch.randn(32, 2) + 3.0
+    vq(data)  # initialised from the first batch, like the EMA codebooks
+    assert [name for name, _ in vq.named_parameters()] == ["codebook"]
+    with torch.no_grad():
+        vq.codebook[0] = -50.0  # one code far from the data: nothing brings it back
+    start = vq.codebook.detach().clone()
+    optim = torch.optim.SGD(vq.parameters(), lr=1.0)
+    for _ in range(300):
+        optim.zero_grad()
+        vq(data).loss.backward()
+        optim.step()
+    assert torch.equal(vq.codebook[0].detach(), start[0])  # never chosen: no codebook-loss gradient
+    indices = vq.nearest(data)
+    used = indices.unique()
+    assert 0 not in used.tolist()
+    # the chosen codes settled on the mean of their latents (the minimiser of the codebook loss): k-means steps
+    for k in used.tolist():
+        mean = data[indices == k].mean(0)
+        assert torch.allclose(vq.codebook[k].detach(), mean, atol=0.05)
+    # the straight-through codes carry the encoder's gradient; indices_to_codes carries none
+    assert not vq.indices_to_codes(used).requires_grad
+
+
 def test_vq_eval_does_not_touch_the_codebook():
-    vq = EMAResetVQ(4, 2)
+    vq = EMAVQ(4, 2)
     vq.train()
     vq(torch.randn(16, 2))
     before = vq.codebook.clone()
@@ -235,16 +277,19 @@ def test_codebook_statistics():
 def test_ablation_sweep_and_table():
     settings = sweep_settings(base_width=64)
     assert {"tokenizer.quantizer": "vq", "tokenizer_train.batch_size": 16, "tokenizer.width": 64} in settings
-    assert len(settings) == 2 + 3 + 2
-    assert len(sweep_settings(64, full=True)) == 2 * 4 * 3
+    assert {"tokenizer.quantizer": "vq_plain", "tokenizer_train.batch_size": 16, "tokenizer.width": 64} in settings
+    assert len(settings) == 4 + 3 + 2
+    assert len(sweep_settings(64, full=True)) == 4 * 4 * 3
     assert dvc_command(settings[0])[:4] == ["dvc", "exp", "run", "--temp"]
     def record(q, bs, w, util, status="FINISHED"):
         params = {"tokenizer.quantizer": q, "tokenizer_train.batch_size": str(bs), "tokenizer.width": str(w)}
         metrics = {f"{g}/utilisation_pct": util for g in ("body", "hand", "face")} | {"face/test_pa_vpe_mm": 1.5}
         return RunRecord("id", "train-tokenizers", 0, status, params, metrics, None)
-    table = ablation_table([record("fsq", 16, 64, 99.0), record("fsq", 16, 64, 10.0), record("vq", 16, 64, 70.0),
-                            record("fsq", 32, 64, 50.0, status="FAILED")])
+    table = ablation_table([record("fsq", 16, 64, 99.0), record("fsq", 16, 64, 10.0), record("vq_plain", 16, 64, 60.0),
+                            record("vq", 16, 64, 70.0), record("fsq", 32, 64, 50.0, status="FAILED")])
     lines = table.splitlines()
-    assert len(lines) == 4  # header, rule, VQ row, newest FSQ row; the failed run is left out
+    assert len(lines) == 5  # header, rule, VQ rows (strong first), newest FSQ row; the failed run is left out
     assert lines[2].startswith("| VQ | 16 | 64 |") and "70.0" in lines[2]
-    assert "99.0" in lines[3] and "10.0" not in lines[3] and "1.50" in lines[3]
+    assert lines[3].startswith("| VQ_PLAIN | 16 | 64 |") and "60.0" in lines[3]
+    assert "99.0" in lines[4] and "10.0" not in lines[4] and "1.50" in lines[4]
+    assert "ppl/K body" in lines[0] and "tokens/K face" in lines[0]

@@ -23,15 +23,23 @@ def token_counts(indices: Iterable[np.ndarray], codebook_size: int) -> np.ndarra
 
 def codebook_stats(counts: np.ndarray) -> dict[str, float]:
     """utilisation_pct: % of codes used at least once; count_sd: standard deviation of the per-code counts
-    (population SD, as Tab. A.2); perplexity: exp(entropy) of the code distribution; tokens: total."""
+    (population SD, as Tab. A.2); perplexity: exp(entropy) of the code distribution; perplexity_per_code:
+    perplexity / K (1 = every code equally often); tokens: total; tokens_per_code: tokens / K.
+
+    Utilisation only means something with many more tokens than codes: N tokens spread uniformly over K codes
+    leave a share (1 - 1/K)^N unused (at N = K, 37 %), so read it beside ``tokens_per_code`` (at 10, under
+    0.005 % of a uniform codebook goes unused) and ``perplexity_per_code``, which does not saturate."""
     total = int(counts.sum())
     probs = counts / max(total, 1)
     nz = probs[probs > 0]
+    perplexity = float(np.exp(-(nz * np.log(nz)).sum())) if total else 0.0
     return {
         "utilisation_pct": 100.0 * float((counts > 0).mean()),
         "count_sd": float(counts.std()),
-        "perplexity": float(np.exp(-(nz * np.log(nz)).sum())) if total else 0.0,
+        "perplexity": perplexity,
+        "perplexity_per_code": perplexity / len(counts),
         "tokens": float(total),
+        "tokens_per_code": total / len(counts),
     }
 
 

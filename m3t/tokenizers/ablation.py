@@ -1,7 +1,8 @@
 """The quantisation ablation (M3T Tab. 3): a ``dvc exp`` sweep and the table printed from MLflow.
 
-The sweep follows the paper's design around a base setting (batch 16, the configured width): VQ vs FSQ,
-then FSQ over batch sizes, then FSQ over widths (``full=True``: the whole grid). Each setting is one
+The sweep follows the paper's design around a base setting (batch 16, the configured width): the three VQs
+(strong ``vq``, ``vq_ema``, ``vq_plain``: :mod:`m3t.tokenizers.vq`) vs FSQ, then FSQ over batch sizes, then FSQ
+over widths (``full=True``: the whole grid). Each setting is one
 ``dvc exp run --temp -S ...`` (a temporary copy of the workspace, so ``params.yaml`` is left alone); the
 runs log to the MLflow store of the workspace through ``MLFLOW_TRACKING_URI``.
 """
@@ -12,6 +13,7 @@ import math
 from typing import Iterable
 
 from m3t.experiment import RunRecord, newest_finished
+from m3t.tokenizers.config import QUANTIZERS
 
 CPU_WIDTHS = (32, 64, 128)
 PAPER_WIDTHS = (512, 1024, 2048)
@@ -20,7 +22,7 @@ GROUPS = ("body", "hand", "face")
 
 
 def sweep_settings(base_width: int, widths: Iterable[int] = CPU_WIDTHS, batch_sizes: Iterable[int] = BATCH_SIZES,
-                   quantizers: Iterable[str] = ("fsq", "vq"), base_batch: int = 16, full: bool = False) -> list[dict]:
+                   quantizers: Iterable[str] = tuple(QUANTIZERS), base_batch: int = 16, full: bool = False) -> list[dict]:
     """Settings as ``{"tokenizer.quantizer": ..., "tokenizer_train.batch_size": ..., "tokenizer.width": ...}``."""
     def setting(q: str, bs: int, w: int) -> dict:
         return {"tokenizer.quantizer": q, "tokenizer_train.batch_size": bs, "tokenizer.width": w}
@@ -45,19 +47,23 @@ def _fmt(value: float | None, digits: int) -> str:
 
 
 def ablation_table(records: list[RunRecord]) -> str:
-    """Markdown table: one row per (quantizer, batch size, width), newest finished run; columns test PA-VPE
-    (mm) and codebook utilisation (%) per group."""
+    """Markdown table: one row per (quantizer, batch size, width), newest finished run, the VQs first; columns
+    per group: test PA-VPE (mm), codebook utilisation (%), perplexity / K, token-count SD, tokens per code (the
+    last says how far utilisation can be read: :func:`m3t.metrics.codebook.codebook_stats`)."""
     rows = newest_finished(records, lambda r: (r.params.get("tokenizer.quantizer", "?"),
                                                int(r.params.get("tokenizer_train.batch_size", 0)),
                                                int(r.params.get("tokenizer.width", 0))))
-    header = ("| Q | BS | HS | " + " | ".join(f"PA-VPE {g} (mm)" for g in GROUPS) + " | "
-              + " | ".join(f"util {g} %" for g in GROUPS) + " | " + " | ".join(f"count SD {g}" for g in GROUPS) + " |")
-    lines = [header, "|" + "---|" * (3 + 3 * len(GROUPS))]
-    for (q, bs, hs), record in sorted(rows.items(), key=lambda kv: (kv[0][0] != "vq", kv[0][1], kv[0][2])):
+    columns = (("PA-VPE {} (mm)", "test_pa_vpe_mm", 2), ("util {} %", "utilisation_pct", 1),
+               ("ppl/K {}", "perplexity_per_code", 2), ("count SD {}", "count_sd", 1),
+               ("tokens/K {}", "tokens_per_code", 1))
+    header = "| Q | BS | HS | " + " | ".join(name.format(g) for name, _, _ in columns for g in GROUPS) + " |"
+    lines = [header, "|" + "---|" * (3 + len(columns) * len(GROUPS))]
+    order = list(QUANTIZERS)
+    for (q, bs, hs), record in sorted(rows.items(), key=lambda kv: ((kv[0][0] == "fsq", order.index(kv[0][0])
+                                                                     if kv[0][0] in order else len(order)),
+                                                                    kv[0][1], kv[0][2])):
         m = record.metrics
         cells = [q.upper(), str(bs), str(hs)]
-        cells += [_fmt(m.get(f"{g}/test_pa_vpe_mm"), 2) for g in GROUPS]
-        cells += [_fmt(m.get(f"{g}/utilisation_pct"), 1) for g in GROUPS]
-        cells += [_fmt(m.get(f"{g}/count_sd"), 1) for g in GROUPS]
+        cells += [_fmt(m.get(f"{g}/{key}"), digits) for _, key, digits in columns for g in GROUPS]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

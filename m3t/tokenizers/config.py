@@ -7,6 +7,15 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+Quantizer = Literal["fsq", "vq", "vq_ema", "vq_plain"]
+# the quantisers of the Tab. 3 ablation (m3t.tokenizers.vq says how the three VQs differ)
+QUANTIZERS: dict[str, str] = {
+    "fsq": "FSQ (M3T)",
+    "vq": "VQ, EMA + dead-code reset (T2M-GPT)",
+    "vq_ema": "VQ, EMA without reset",
+    "vq_plain": "VQ-VAE, learned codebook (no EMA, no reset)",
+}
+
 
 @dataclass(frozen=True)
 class VAEConfig:
@@ -14,7 +23,7 @@ class VAEConfig:
 
     input_dim: int
     levels: tuple[int, ...]
-    quantizer: Literal["fsq", "vq"] = "fsq"
+    quantizer: Quantizer = "fsq"
     width: int = 1024
     depth: int = 6
     down_stages: int = 2
@@ -40,7 +49,7 @@ class VAEConfig:
 class TokenizerConfig:
     """``tokenizer`` section: the architecture shared by the three groups (App. 0.D.1) and the quantiser."""
 
-    quantizer: Literal["fsq", "vq"] = "fsq"
+    quantizer: Quantizer = "fsq"
     width: int = 128
     depth: int = 6
     down_stages: int = 2

@@ -73,7 +73,7 @@ def codebook_report(model: MotionTokenizer, group: str, splits: dict[str, list[F
     test = counts.get("test", np.zeros(model.codebook_size, dtype=np.int64))
     stats = codebook_stats(test)
     if not test.sum():
-        stats = {k: (0.0 if k == "tokens" else float("nan")) for k in stats}
+        stats = {k: (0.0 if k.startswith("tokens") else float("nan")) for k in stats}
     every = codebook_stats(np.sum(list(counts.values()), axis=0) if counts else test)
     return {**stats, **{f"all_splits_{k}": v for k, v in every.items()}}, test
 

@@ -20,9 +20,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from m3t.tokenizers.config import VAEConfig
+from m3t.tokenizers.config import QUANTIZERS, VAEConfig
 from m3t.tokenizers.fsq import FSQ
-from m3t.tokenizers.vq import EMAResetVQ
+from m3t.tokenizers.vq import EMAVQ, PlainVQ
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,17 @@ def decoder_layers(cfg: VAEConfig) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def make_quantizer(cfg: VAEConfig) -> FSQ | EMAVQ | PlainVQ:
+    """The quantiser ``cfg.quantizer`` names (``tokenizer.quantizer``: one of :data:`QUANTIZERS`)."""
+    if cfg.quantizer == "fsq":
+        return FSQ(cfg.levels)
+    if cfg.quantizer in ("vq", "vq_ema"):
+        return EMAVQ(cfg.codebook_size, cfg.vq_code_dim, cfg.vq_decay, cfg.vq_beta, reset=cfg.quantizer == "vq")
+    if cfg.quantizer == "vq_plain":
+        return PlainVQ(cfg.codebook_size, cfg.vq_code_dim, cfg.vq_beta)
+    raise ValueError(f"tokenizer.quantizer {cfg.quantizer!r} unknown; allowed: {', '.join(QUANTIZERS)}")
+
+
 class MotionTokenizer(nn.Module):
     """One modality's VAE + quantiser: ``(B, T, D)`` parameters <-> ``(B, T / 4)`` token indices."""
 
@@ -79,12 +90,7 @@ class MotionTokenizer(nn.Module):
         self.encoder = encoder_layers(cfg)
         self.to_latent = nn.Conv1d(cfg.width, cfg.latent_dim, 3, padding=1)
         self.decoder = decoder_layers(cfg)
-        if cfg.quantizer == "fsq":
-            self.quantizer: FSQ | EMAResetVQ = FSQ(cfg.levels)
-        elif cfg.quantizer == "vq":
-            self.quantizer = EMAResetVQ(cfg.codebook_size, cfg.vq_code_dim, cfg.vq_decay, cfg.vq_beta)
-        else:
-            raise ValueError(f"quantizer {cfg.quantizer!r} unknown; allowed: fsq, vq")
+        self.quantizer = make_quantizer(cfg)
         self.register_buffer("mean", torch.zeros(cfg.input_dim))
         self.register_buffer("std", torch.ones(cfg.input_dim))
 
