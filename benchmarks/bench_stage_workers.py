@@ -74,10 +74,13 @@ def selection_figures(metrics: dict) -> dict[str, float]:
     return {k: float(v) for k, v in sorted(flat.items()) if k.rsplit("/", 1)[-1].startswith("best_")}
 
 
-def run_arm(name: str, stage: Stage, workers: int, work: Path, repeat: int) -> tuple[float, dict[str, float]]:
+def run_arm(name: str, stage: Stage, workers: int, work: Path, repeat: int,
+            env: dict[str, str] | None = None, label: str = "") -> tuple[float, dict[str, float]]:
+    """One run of the stage ``name`` in a fresh interpreter (environment ``env``: default this one's); its wall
+    time and its selection figures."""
     params = to_dict(load_params(ROOT / "params.yaml"))
     pipeline_models = ROOT / params["data"]["models_dir"]
-    root = work / f"{name}-workers{workers}-{repeat}"
+    root = work / f"{name}-workers{workers}{label}-{repeat}"
     params[stage.section].update({stage.setting: workers, "cache_dir": str(root / "cache")})
     params["data"]["models_dir"] = str(root / "models")
     params["experiment"]["enabled"] = False
@@ -90,7 +93,8 @@ def run_arm(name: str, stage: Stage, workers: int, work: Path, repeat: int) -> t
     params_file.write_text(yaml.safe_dump(params))
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", f"m3t.stages.{stage.module}", "--params", str(params_file)],
-                          cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False)
+                          cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False,
+                          env=env)
     seconds = time.perf_counter() - start
     if done.returncode:
         sys.exit(f"{name} with {stage.section}.{stage.setting} {workers} failed ({done.returncode}):\n"

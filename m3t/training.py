@@ -27,6 +27,8 @@ from typing import Any, Callable, Literal
 import numpy as np
 import torch
 
+from m3t.arithmetic import cache_parts
+
 from m3t.atomic import atomic_path, remove_stale_temps, run_lock
 
 
@@ -94,7 +96,7 @@ def run_digest(*parts: Any) -> str:
     trainer's version string, model and training settings, vocabularies, data version). ``parts`` are
     JSON-dumped with sorted keys; bytes count by their SHA-256, anything else unknown to JSON by ``str``."""
     digest = lambda v: hashlib.sha256(v).hexdigest() if isinstance(v, bytes) else str(v)  # noqa: E731
-    text = json.dumps(list(parts), sort_keys=True, default=digest)
+    text = json.dumps([*parts, *cache_parts()], sort_keys=True, default=digest)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

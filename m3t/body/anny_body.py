@@ -30,6 +30,7 @@ import numpy as np
 import roma
 import torch
 
+from m3t.arithmetic import cache_folder
 from m3t.body.anny_targets import fast_target_reader
 from m3t.body.protocol import (
     BodyOutput,
@@ -66,7 +67,7 @@ def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch
     """Build (first time ~20 s, ~800 MB cache) or load the Anny model; one instance per process and
     (device, dtype), the others copied from the CPU float32 one. Callers never move a returned instance: it is
     shared by every :class:`AnnyBody` of the process on that device."""
-    key = str(Path(cache_dir).resolve())
+    key = str(Path(cache_folder(cache_dir)).resolve())  # built anew under M3T_REPRODUCIBLE: it holds computed floats
     device = torch.device(device or "cpu")
     with _MODEL_LOCK:
         if key not in _MODELS:

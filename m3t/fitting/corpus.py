@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from m3t.arithmetic import cache_parts
 from m3t.atomic import run_lock, write_json, write_text
 from m3t.body.factory import body_cache_key, load_body_model
 from m3t.body.metric_sets import joints_for
@@ -80,7 +81,7 @@ NO_EXTERNAL = "rest pose: no NLF / WiLoR / Pixel3DMM outputs beside the media"
 
 def _digest(*parts: object) -> str:
     h = hashlib.sha256()
-    for part in parts:
+    for part in (*parts, *cache_parts()):
         h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
         h.update(b"\0")
     return h.hexdigest()[:16]
