@@ -15,7 +15,7 @@ from pathlib import Path
 from dashboards import html as h
 from dashboards.paper import M3T, SGSA, PaperTable
 from m3t.backtranslation.table import backtranslation_table
-from m3t.claims import claims_table
+from m3t.claims import claims_table, stability, stability_line
 from m3t.config import Params
 from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
 from m3t.sgsa.table import adjacency_table, cross_table, in_display_units, layers_table
@@ -126,7 +126,8 @@ def claims(runs: list[RunRecord]) -> str:
     note = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % hierarchical bootstrap "
             "interval over training seeds and test clips (over seeds for codebook statistics); runs of one data version "
             "only. Verdicts need >= 3 seeds; a claim with no runs says which command makes them. "
-            "<code>m3t claims</code> writes the same table to claims.json / claims.md.")
+            "<code>m3t claims</code> writes the same table to claims.json / claims.md. "
+            + h.esc(stability_line(stability(rows))))
     body = []
     for r in rows:
         if r["verdict"] == "not run":

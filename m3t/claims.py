@@ -364,16 +364,58 @@ def judge(claim: Claim, sample: Sample, min_seeds: int, rng: np.random.Generator
             "runs_a": sample.runs_a, "runs_b": sample.runs_b}
 
 
+def seed_halves(claim: Claim, sample: Sample, rng: np.random.Generator) -> dict | None:
+    """The claim judged again on two disjoint halves of its seeds (the first half, the rest), each on its own
+    hierarchical interval: ``{"seeds": [first, rest], "verdicts": [..., ...]}``; None under 2 seeds. A verdict
+    that one set of retrains gives and the other does not is not a finding. The halves are judged without the
+    ``min_seeds`` rule (they hold fewer seeds by construction): what is compared is where each half's interval
+    lies."""
+    if len(sample.seeds) < 2:
+        return None
+    half = len(sample.seeds) // 2
+    verdicts = []
+    for part in (slice(0, half), slice(half, None)):
+        if sample.unit == "seed":  # (1, R): the seeds are the columns
+            sub = Sample(sample.a[:, part], sample.b[:, part], sample.seeds[part], [], [], sample.unit)
+        else:  # (R, C): the seeds are the rows
+            sub = Sample(sample.a[part], sample.b[part], sample.seeds[part], [], [], sample.unit)
+        verdicts.append(judge(claim, sub, 1, rng)["verdict"])
+    return {"seeds": [sample.seeds[:half], sample.seeds[half:]], "verdicts": verdicts}
+
+
+def stability(rows: list[dict]) -> dict:
+    """How many judged claims flip their verdict between the two seed halves (:func:`seed_halves`)."""
+    compared = [r for r in rows if r.get("halves")]
+    flips = [{"key": r["key"], "claim": r["claim"], "verdicts": r["halves"]["verdicts"],
+              "seeds": r["halves"]["seeds"]} for r in compared if len(set(r["halves"]["verdicts"])) > 1]
+    return {"compared": len(compared), "flipped": len(flips),
+            "share_flipped": len(flips) / len(compared) if compared else None, "flips": flips}
+
+
+def stability_line(summary: dict) -> str:
+    """One sentence on :func:`stability` for claims.md and the dashboard."""
+    if not summary["compared"]:
+        return "Stability: no claim has 2 seeds yet, so none could be judged again on two disjoint seed halves."
+    return (f"Stability: judged again on two disjoint halves of their seeds (first half, rest), {summary['flipped']} "
+            f"of {summary['compared']} claims flip their verdict ({100 * summary['share_flipped']:.0f} %)"
+            + (": " + "; ".join(f"{f['claim']} ({' / '.join(f['verdicts'])})" for f in summary["flips"])
+               if summary["flips"] else "") + ".")
+
+
 def claims_table(records: list[RunRecord], min_seeds: int = 3, claims: tuple[Claim, ...] = CLAIMS,
                  seed: int = 0) -> list[dict]:
     """Every claim judged on ``records`` (MLflow runs, newest first); a claim without runs says what to run.
     Each claim bootstraps with its own generator, seeded from ``seed`` and its key: its interval does not depend
-    on which other claims are judged, nor in which order."""
+    on which other claims are judged, nor in which order. Each row also holds its verdicts on two seed halves
+    (``halves``, :func:`seed_halves`), drawn after its own interval."""
     rows = []
     for claim in claims:
         rng = np.random.default_rng([seed, zlib.crc32(claim.key.encode())])
         try:
-            rows.append(judge(claim, claim.collect(records), min_seeds, rng))
+            sample = claim.collect(records)
+            row = judge(claim, sample, min_seeds, rng)
+            row["halves"] = seed_halves(claim, sample, rng)
+            rows.append(row)
         except MissingRuns as missing:
             rows.append({"key": claim.key, "source": claim.source, "claim": claim.statement, "paper": claim.paper,
                          "metric": claim.metric, "a": claim.a, "b": claim.b, "seeds": [], "verdict": "not run",
@@ -406,6 +448,7 @@ def claims_markdown(rows: list[dict], min_seeds: int) -> str:
         verdict = r["verdict"] + (f" ({r['note']})" if r["note"] else "")
         lines.append(f"| {r['claim']} | {r['source']} | {r['paper']} | {r['metric']} | {ours} | {r['compared']} "
                      f"{_fmt(r['value'])} [{_fmt(low)}, {_fmt(high)}]{band} | {verdict} | {len(r['seeds'])} | {runs} |")
+    lines += ["", stability_line(stability(rows))]
     return "\n".join(lines) + "\n"
 
 
@@ -414,6 +457,7 @@ def write_claims(records: list[RunRecord], out_dir: str | Path, min_seeds: int =
     rows = claims_table(records, min_seeds)
     out = Path(out_dir)
     write_json(out / "claims.json", {"min_seeds": min_seeds, "motion_definition": MOTION_DEFINITION,
-                                     "text_definition": TEXT_DEFINITION, "claims": rows})
+                                     "text_definition": TEXT_DEFINITION, "claims": rows,
+                                     "stability": stability(rows)})
     write_text(out / "claims.md", claims_markdown(rows, min_seeds))
     return rows

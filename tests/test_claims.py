@@ -7,12 +7,13 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from m3t.claims import CLAIMS, claims_markdown, claims_table, write_claims
+from m3t.claims import CLAIMS, claims_markdown, claims_table, judge, stability, stability_line, write_claims
 from m3t.experiment import RunRecord
 
 CLIPS = [f"asl-syn-{i:04d}" for i in range(12)]
@@ -67,6 +68,35 @@ def test_three_seeds_with_a_clear_gain_reproduce_and_one_seed_is_inconclusive(tm
     assert one["verdict"] == "inconclusive" and "1 seed(s) < 3" in one["note"]
     assert claims_table(smlm_runs(tmp_path / "one", 1, gain=0.5), min_seeds=1,
                         claims=only("smlm-objective-dtw-body"))[0]["verdict"] == "reproduced"
+
+
+def test_a_verdict_that_one_half_of_the_seeds_gives_and_the_other_does_not_is_reported_as_a_flip(tmp_path):
+    # seeds 0-1: the objective helps by 0.5 on every clip; seeds 2-3: it does nothing. Pooled, the gain is real
+    # on average; judged on each half, the first says reproduced and the second inconclusive: a flip
+    g = np.random.default_rng(1)
+    records = []
+    for s in range(4):
+        base = 3.0 + g.random(len(CLIPS))
+        gain = 0.5 if s < 2 else 0.0
+        records.append(smlm_run(tmp_path, f"po{s}", False, s, base, "v1", start=10 * s))
+        records.append(smlm_run(tmp_path, f"pt{s}", True, s, base - gain + 0.01 * g.standard_normal(len(CLIPS)), "v1",
+                                start=10 * s + 1))
+    records.sort(key=lambda r: -r.start_time)
+    row = claims_table(records, claims=only("smlm-objective-dtw-body"))[0]
+    assert row["halves"]["seeds"] == [["0", "1"], ["2", "3"]]
+    assert row["halves"]["verdicts"] == ["reproduced", "inconclusive"]
+    summary = stability([row])
+    assert summary["compared"] == 1 and summary["flipped"] == 1 and summary["share_flipped"] == 1.0
+    assert "1 of 1 claims flip" in stability_line(summary) and "reproduced / inconclusive" in stability_line(summary)
+    steady = claims_table(smlm_runs(tmp_path / "steady", 4, gain=0.5), claims=only("smlm-objective-dtw-body"))[0]
+    assert steady["halves"]["verdicts"] == ["reproduced", "reproduced"] and stability([steady])["flipped"] == 0
+    # the halves are drawn after the row's own interval: judging them leaves the interval as it was
+    alone = judge(only("smlm-objective-dtw-body")[0],
+                  only("smlm-objective-dtw-body")[0].collect(records), 3,
+                  np.random.default_rng([0, zlib.crc32(b"smlm-objective-dtw-body")]))
+    assert alone["interval95"] == row["interval95"]
+    one = claims_table(smlm_runs(tmp_path / "one", 1, gain=0.5), claims=only("smlm-objective-dtw-body"))[0]
+    assert one["halves"] is None and "no claim has 2 seeds" in stability_line(stability([one]))
 
 
 def test_runs_on_other_shards_are_never_paired(tmp_path):
