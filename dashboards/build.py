@@ -43,7 +43,8 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
         "tables.html": ("Paper tables", sections.paper_tables(runs), False),
         "curves.html": ("Training curves", sections.curves(runs, params.experiment, root), True),
         "claims.html": ("The papers' claims on these runs", sections.claims(runs) + sections.sgsa_study(
-            Path(params.data.metrics_dir) / "sgsa-claims" / "claims.json"), False),
+            Path(params.data.metrics_dir) / "sgsa-claims" / "claims.json")
+            + sections.repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
         "codebooks.html": ("Codebooks: utilisation and token histograms", sections.codebooks(runs, params), True),
         "quality.html": ("Data quality per corpus", sections.quality(params), True),
         "videos.html": ("Videos: reference vs each model, per test clip", sections.videos(runs, tmp / "media"), False),

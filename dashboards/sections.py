@@ -18,6 +18,7 @@ from m3t.backtranslation.table import backtranslation_table
 from m3t.claims import claims_table, stability, stability_line
 from m3t.config import Params
 from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
+from m3t.metrics.stats import agreeing_digits
 from m3t.sgsa.table import adjacency_table, cross_table, in_display_units, layers_table
 from m3t.slr.table import recognition_table
 from m3t.smlm.table import production_table
@@ -169,6 +170,30 @@ def sgsa_study(path: Path) -> str:
             + stability)
     header = ["claim", "counter", "metric", "A -> B", "B - A [95 % interval]", "verdict"]
     return f"<h2>SGSA study</h2><p class=note>{h.esc(note)}</p>" + h.table(header, body, "sgsa-study")
+
+
+def repeatability(path: Path) -> str:
+    """Which digits of the training stages' figures repeat under other arithmetic: ``bench_reproducible.py``'s
+    result (each stage at the machine's arithmetic and under ``M3T_REPRODUCIBLE=1``, same data and seeds)."""
+    if not path.exists():
+        return ("<h2>Which digits repeat</h2>" + h.empty("Not measured here yet: run <code>python "
+                                                         "benchmarks/bench_reproducible.py</code>."))
+    result = json.loads(path.read_text())
+    body = []
+    for stage, values in result.get("stages", {}).items():
+        for figure, pair in values.get("figures", {}).items():
+            old, new = pair.get("old"), pair.get("new")
+            digits = agreeing_digits(float(old), float(new)) if None not in (old, new) else None
+            body.append([stage, figure, f"{old:.6g}", "-" if new is None else f"{new:.6g}",
+                         "-" if digits is None else ("all" if digits >= 15 else str(digits))])
+    note = (f"Each training stage run twice on the same data and seeds, on {result.get('machine', '?')} "
+            f"({result.get('cpu_count', '?')} cores): with the machine's own arithmetic and with the pinned one "
+            f"(M3T_REPRODUCIBLE=1, {result.get('cost', float('nan')):.2f}x the time). Only the float order differs, "
+            "so the digits the two share are those another machine can be expected to repeat; under the mode every "
+            "digit repeats on any x86-64 CPU. Seeds move the figures far more: see each claim's std over seeds.")
+    return (f"<h2>Which digits repeat</h2><p class=note>{h.esc(note)}</p>"
+            + h.table(["stage", "figure", "machine arithmetic", "pinned arithmetic", "digits that agree"], body,
+                      "repeatability"))
 
 
 def _token_counts(record: RunRecord) -> dict[str, dict]:

@@ -87,3 +87,19 @@ def test_the_sgsa_study_shows_its_verdicts_intervals_and_how_many_flip_between_s
     assert "4 of 12 verdicts flip (33 %)" in html and "seeds [0, 1] and on seeds [2, 3]" in html
     path.write_text(json.dumps({**summary, "stability": {"compared": 0}}))
     assert "no stability check" in sgsa_study(path)
+
+
+def test_the_repeatability_table_counts_the_digits_two_arithmetics_share(tmp_path):
+    from dashboards.sections import repeatability
+    from m3t.metrics.stats import agreeing_digits
+
+    assert agreeing_digits(1.23456, 1.23457) == 5 and agreeing_digits(2.0, 3.0) == 0
+    assert agreeing_digits(0.5, 0.5) == 15 and agreeing_digits(float("nan"), 1.0) is None
+    path = tmp_path / "reproducible.json"
+    assert "bench_reproducible.py" in repeatability(path)  # nothing measured: says what to run
+    path.write_text(json.dumps({"machine": "x86_64", "cpu_count": 2, "cost": 1.4, "stages": {"train-slr": {
+        "figures": {"full/best_dev_loss": {"old": 1.27664, "new": 1.27671}, "face/best_vpe": {"old": 3.0, "new": 3.0}}}}}))
+    page = repeatability(path)
+    assert ("<td>full/best_dev_loss</td><td class=num>1.27664</td><td class=num>1.27671</td><td class=num>4</td>"
+            in page)
+    assert "<td>face/best_vpe</td><td class=num>3</td><td class=num>3</td><td>all</td>" in page and "1.40x" in page

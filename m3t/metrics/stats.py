@@ -150,3 +150,14 @@ def verdict_within(interval: tuple[float, float], target: float, margin: float) 
     if high < target - margin or low > target + margin:
         return NOT_REPRODUCED
     return INCONCLUSIVE
+
+
+def agreeing_digits(a: float, b: float) -> int | None:
+    """How many leading significant digits two measurements of one figure share: floor(-log10(|a - b| / max(|a|,
+    |b|))), capped at 15 (float64); None when either is not finite. 0 when they differ in the first digit."""
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return None
+    scale = max(abs(a), abs(b))
+    if a == b or scale == 0.0:
+        return 15
+    return max(0, min(15, math.floor(-math.log10(abs(a - b) / scale))))
