@@ -2,6 +2,8 @@
 token shards, codebook statistics and the ablation table. Fast, CPU-only."""
 from __future__ import annotations
 
+import dataclasses
+
 import math
 
 import numpy as np
@@ -289,7 +291,13 @@ def test_ablation_sweep_and_table():
                             record("vq", 16, 64, 70.0), record("fsq", 32, 64, 50.0, status="FAILED")])
     lines = table.splitlines()
     assert len(lines) == 5  # header, rule, VQ rows (strong first), newest FSQ row; the failed run is left out
-    assert lines[2].startswith("| VQ | 16 | 64 |") and "70.0" in lines[2]
-    assert lines[3].startswith("| VQ_PLAIN | 16 | 64 |") and "60.0" in lines[3]
+    assert lines[2].startswith("| VQ | 16 | 64 | 1 |") and "70.0" in lines[2]
+    assert lines[3].startswith("| VQ_PLAIN | 16 | 64 | 1 |") and "60.0" in lines[3]
     assert "99.0" in lines[4] and "10.0" not in lines[4] and "1.50" in lines[4]
     assert "ppl/K body" in lines[0] and "tokens/K face" in lines[0]
+    # several seeds of one setting: mean +- SD over the newest run of each seed
+    seeded = [dataclasses.replace(record("vq", 16, 64, util), params={**record("vq", 16, 64, util).params,
+                                                                      "tokenizer_train.seed": str(seed)})
+              for seed, util in ((0, 60.0), (1, 70.0), (2, 80.0))]
+    row = ablation_table(seeded).splitlines()[2]
+    assert row.startswith("| VQ | 16 | 64 | 3 |") and "70.0 +- 8.2" in row

@@ -46,24 +46,39 @@ def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
 
 
+def _cell(values: list[float], digits: int) -> str:
+    """One seed's value, or mean +- population SD over the seeds."""
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    if len(values) < 2:
+        return _fmt(values[0] if values else None, digits)
+    mean = sum(values) / len(values)
+    sd = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
+    return f"{mean:.{digits}f} +- {sd:.{digits}f}"
+
+
 def ablation_table(records: list[RunRecord]) -> str:
-    """Markdown table: one row per (quantizer, batch size, width), newest finished run, the VQs first; columns
-    per group: test PA-VPE (mm), codebook utilisation (%), perplexity / K, token-count SD, tokens per code (the
-    last says how far utilisation can be read: :func:`m3t.metrics.codebook.codebook_stats`)."""
-    rows = newest_finished(records, lambda r: (r.params.get("tokenizer.quantizer", "?"),
+    """Markdown table: one row per (quantizer, batch size, width), the VQs first, over the newest finished run of
+    each seed (mean +- SD when there are several); columns per group: test PA-VPE (mm), codebook utilisation (%),
+    perplexity / K, token-count SD, tokens per code (the last says how far utilisation can be read:
+    :func:`m3t.metrics.codebook.codebook_stats`)."""
+    runs = newest_finished(records, lambda r: (r.params.get("tokenizer.quantizer", "?"),
                                                int(r.params.get("tokenizer_train.batch_size", 0)),
-                                               int(r.params.get("tokenizer.width", 0))))
+                                               int(r.params.get("tokenizer.width", 0)),
+                                               r.params.get("tokenizer_train.seed", r.tags.get("seed", "?"))))
+    rows: dict[tuple, list[RunRecord]] = {}
+    for (q, bs, hs, _), record in runs.items():
+        rows.setdefault((q, bs, hs), []).append(record)
     columns = (("PA-VPE {} (mm)", "test_pa_vpe_mm", 2), ("util {} %", "utilisation_pct", 1),
                ("ppl/K {}", "perplexity_per_code", 2), ("count SD {}", "count_sd", 1),
                ("tokens/K {}", "tokens_per_code", 1))
-    header = "| Q | BS | HS | " + " | ".join(name.format(g) for name, _, _ in columns for g in GROUPS) + " |"
-    lines = [header, "|" + "---|" * (3 + len(columns) * len(GROUPS))]
+    header = ("| Q | BS | HS | seeds | " + " | ".join(name.format(g) for name, _, _ in columns for g in GROUPS)
+              + " |")
+    lines = [header, "|" + "---|" * (4 + len(columns) * len(GROUPS))]
     order = list(QUANTIZERS)
-    for (q, bs, hs), record in sorted(rows.items(), key=lambda kv: ((kv[0][0] == "fsq", order.index(kv[0][0])
-                                                                     if kv[0][0] in order else len(order)),
-                                                                    kv[0][1], kv[0][2])):
-        m = record.metrics
-        cells = [q.upper(), str(bs), str(hs)]
-        cells += [_fmt(m.get(f"{g}/{key}"), digits) for _, key, digits in columns for g in GROUPS]
+    for (q, bs, hs), group_runs in sorted(rows.items(), key=lambda kv: (
+            (kv[0][0] == "fsq", order.index(kv[0][0]) if kv[0][0] in order else len(order)), kv[0][1], kv[0][2])):
+        cells = [q.upper(), str(bs), str(hs), str(len(group_runs))]
+        cells += [_cell([r.metrics.get(f"{g}/{key}") for r in group_runs], digits)
+                  for _, key, digits in columns for g in GROUPS]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
