@@ -81,7 +81,8 @@ def _restart() -> None:
         argv = [sys.executable, *argv[1:]]
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, argv, pinned_environment())
+    # the same interpreter and argv this process was started with, no shell: nothing new is run
+    os.execve(sys.executable, argv, pinned_environment())  # noqa: S606
 
 
 def pin() -> None:

@@ -8,6 +8,8 @@
    - S603 ``flows/services.py`` ``start``: ``subprocess.Popen`` of the argv list that ``plan()`` builds, no shell;
    - S310 ``flows/services.py`` ``_http``: ``urllib.request`` on a health URL; ``_http`` refuses anything but
      ``http://`` / ``https://`` first (the URLs come from ``services.json``, a file on disk);
+   - S606 ``m3t/arithmetic.py`` ``_restart``: ``os.execve`` of this process's own interpreter and argv, in the
+     pinned environment of ``M3T_REPRODUCIBLE=1``;
    - S104 ``flows/services.py`` ``plan``: the string ``"0.0.0.0"`` is compared with ``--host`` to pick the address
      clients connect to; nothing binds it;
    - S101 ``m3t/body/anny_body.py``, ``m3t/body/build_correspondence.py``, ``m3t/shards/dataset.py``: asserts on
