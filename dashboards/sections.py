@@ -121,29 +121,49 @@ def curves(runs: list[RunRecord], experiment: ExperimentConfig, root: str | Path
 
 
 # ------------------------------------------------------------------------------------------------ codebooks
-def claims(runs: list[RunRecord]) -> str:
-    """Every claim of :data:`m3t.claims.CLAIMS` judged on the runs (what ``m3t claims`` writes)."""
-    rows = claims_table(runs)
-    note = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % hierarchical bootstrap "
-            "interval over training seeds and test clips (over seeds for codebook statistics); runs of one data version "
-            "only. Verdicts need >= 3 seeds; a claim with no runs says which command makes them. "
-            "<code>m3t claims</code> writes the same table to claims.json / claims.md. "
-            + h.esc(stability_line(stability(rows))))
+def _claim_rows(rows: list[dict]) -> str:
+    """The claims table of judged rows (:func:`m3t.claims.claims_table`'s, live or read from a claims.json)."""
     body = []
     for r in rows:
         if r["verdict"] == "not run":
             body.append([r["claim"], r["source"], r["paper"], r["metric"], "-", "-", f"not run: {r['note']}", 0, "-"])
             continue
         low, high = r["interval95"]
+        halves = r.get("halves") or {}
+        flipped = len(set(halves.get("verdicts", []))) > 1
         body.append([r["claim"], r["source"], r["paper"], r["metric"],
                      f"{r['a']} {r['mean_a']:.3g} +- {r['std_a']:.2g} -> "
                      f"{r['b']} {r['mean_b']:.3g} +- {r['std_b']:.2g}",
                      f"{r['compared']} {r['value']:.3g} [{low:.3g}, {high:.3g}]",
-                     r["verdict"] + (f" ({r['note']})" if r["note"] else ""), len(r["seeds"]),
+                     r["verdict"] + (f" ({r['note']})" if r["note"] else "")
+                     + (f"; seed halves: {' / '.join(halves['verdicts'])}" if flipped else ""), len(r["seeds"]),
                      ", ".join(sorted({i[:8] for i in r["runs_a"] + r["runs_b"]}))])
     header = ["claim", "source", "paper", "metric", "ours: A -> B", "compared [95 % interval]", "verdict", "seeds",
               "runs"]
-    return f"<p class=note>{note}</p>" + h.table(header, body, "claims")
+    return h.table(header, body, "claims")
+
+
+CLAIMS_NOTE = ("Ours: A -> B as mean +- std over seeds; the compared quantity with its 95 % hierarchical bootstrap "
+               "interval over training seeds and test clips (over seeds for codebook statistics); runs of one data "
+               "version only. Verdicts need >= 3 seeds. ")
+
+
+def claims(runs: list[RunRecord]) -> str:
+    """Every claim of :data:`m3t.claims.CLAIMS` judged on the runs (what ``m3t claims`` writes)."""
+    rows = claims_table(runs)
+    note = (CLAIMS_NOTE + "A claim with no runs says which command makes them. <code>m3t claims</code> writes the "
+            "same table to claims.json / claims.md. " + h.esc(stability_line(stability(rows))))
+    return f"<p class=note>{note}</p>" + _claim_rows(rows)
+
+
+def saved_claims(path: Path, title: str, command: str) -> str:
+    """A study's judged claims as ``m3t claims`` saved them (``claims.json``), its judged rows only."""
+    if not path.exists():
+        return f"<h2>{h.esc(title)}</h2>" + h.empty(f"Not run yet: <code>{h.esc(command)}</code>.")
+    saved = json.loads(path.read_text())
+    rows = [r for r in saved.get("claims", []) if r["verdict"] != "not run"]
+    note = CLAIMS_NOTE + stability_line(stability(rows)) + f" ({path}, from {command})"
+    return f"<h2>{h.esc(title)}</h2><p class=note>{h.esc(note)}</p>" + _claim_rows(rows)
 
 
 def sgsa_study(path: Path) -> str:

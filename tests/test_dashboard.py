@@ -103,3 +103,20 @@ def test_the_repeatability_table_counts_the_digits_two_arithmetics_share(tmp_pat
     assert ("<td>full/best_dev_loss</td><td class=num>1.27664</td><td class=num>1.27671</td><td class=num>4</td>"
             in page)
     assert "<td>face/best_vpe</td><td class=num>3</td><td class=num>3</td><td>all</td>" in page and "1.40x" in page
+
+
+def test_a_saved_study_shows_its_judged_claims_with_the_seed_halves_that_flip(tmp_path):
+    from dashboards.sections import saved_claims
+
+    row = {"key": "k", "claim": "FSQ uses more codes", "source": "M3T Tab. 3", "paper": "67 -> 96", "metric": "util",
+           "a": "VQ", "b": "FSQ", "mean_a": 97.4, "std_a": 1.6, "mean_b": 93.6, "std_b": 2.4, "compared": "B - A",
+           "value": -3.8, "interval95": [-7.0, 0.0], "verdict": "inconclusive", "note": "", "seeds": ["0", "1", "2"],
+           "runs_a": ["aaaaaaaaaa"], "runs_b": ["bbbbbbbbbb"],
+           "halves": {"seeds": [["0"], ["1", "2"]], "verdicts": ["not reproduced", "inconclusive"]}}
+    missing = {**row, "key": "m", "claim": "the SMLM claim", "verdict": "not run", "note": "run it", "seeds": []}
+    path = tmp_path / "claims.json"
+    path.write_text(json.dumps({"claims": [row, missing]}))
+    page = saved_claims(path, "Tab. 3 study", "m3t study")
+    assert "FSQ uses more codes" in page and "the SMLM claim" not in page  # judged rows only
+    assert "seed halves: not reproduced / inconclusive" in page and "1 of 1 claims flip" in page
+    assert "m3t study" in saved_claims(tmp_path / "none.json", "Tab. 3 study", "m3t study")
