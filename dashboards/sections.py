@@ -209,8 +209,9 @@ def repeatability(path: Path) -> str:
     note = (f"Each training stage run twice on the same data and seeds, on {result.get('machine', '?')} "
             f"({result.get('cpu_count', '?')} cores): with the machine's own arithmetic and with the pinned one "
             f"(M3T_REPRODUCIBLE=1, {result.get('cost', float('nan')):.2f}x the time). Only the float order differs, "
-            "so the digits the two share are those another machine can be expected to repeat; under the mode every "
-            "digit repeats on any x86-64 CPU. Seeds move the figures far more: see each claim's std over seeds.")
+            "so the digits the two share are those another machine can be expected to repeat. Under the mode every "
+            "digit repeated across thread counts and kernel settings on one machine (tests/test_arithmetic.py). Seeds "
+            "move the figures as much or more: see each claim's std over seeds.")
     return (f"<h2>Which digits repeat</h2><p class=note>{h.esc(note)}</p>"
             + h.table(["stage", "figure", "machine arithmetic", "pinned arithmetic", "digits that agree"], body,
                       "repeatability"))
