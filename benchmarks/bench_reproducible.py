@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_stage_workers import DEFAULT, ROOT, STAGES, run_arm
+from bench_stage_workers import DEFAULT, ROOT, STAGES, compare_arms
 from report import write_and_log
 
 from m3t.arithmetic import PINNED, pinned_environment
@@ -40,20 +40,10 @@ def main() -> None:
     stages: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-reproducible-") as tmp:
         for name in args.stages:
-            stage = STAGES[name]
-            workers = 2  # the default's worker processes in both arms: the mode runs each with one thread
-            times: dict[str, list[float]] = {"old": [], "new": []}
-            figures: dict[str, dict[str, float]] = {}
-            for repeat in range(args.repeats):
-                for arm, env in arms.items():
-                    seconds, figures[arm] = run_arm(name, stage, workers, Path(tmp), repeat, env, f"-{arm}")
-                    times[arm].append(seconds)
-                    print(f"{name} {arm}, repeat {repeat}: {seconds:.1f} s", flush=True)
-            old, new = min(times["old"]), min(times["new"])
-            stages[name] = {"old_seconds": old, "new_seconds": new, "cost": new / old,
-                            "old_all_seconds": times["old"], "new_all_seconds": times["new"],
-                            "figures": {k: {"old": figures["old"][k], "new": figures["new"].get(k)}
-                                        for k in figures["old"]}}
+            # the default's 2 worker processes in both arms: the mode runs each with one thread
+            stages[name] = compare_arms(name, {"old": (2, arms["old"]), "new": (2, arms["new"])}, Path(tmp),
+                                        args.repeats)
+            stages[name]["cost"] = stages[name]["new_seconds"] / stages[name]["old_seconds"]
     old_total = sum(s["old_seconds"] for s in stages.values())
     new_total = sum(s["new_seconds"] for s in stages.values())
     result = {"machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),

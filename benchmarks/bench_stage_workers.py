@@ -102,6 +102,24 @@ def run_arm(name: str, stage: Stage, workers: int, work: Path, repeat: int,
     return seconds, selection_figures(json.loads((root / "models" / stage.out / "metrics.json").read_text()))
 
 
+def compare_arms(name: str, arms: dict[str, tuple[int, dict[str, str] | None]], work: Path, repeats: int,
+                 labels: dict[str, str] | None = None) -> dict:
+    """The stage ``name`` in two arms, ``{"old": (workers, env), "new": (workers, env)}``, alternating ``repeats``
+    times; each arm's fastest repeat (``old_seconds`` / ``new_seconds``), all its repeats and both arms'
+    selection figures."""
+    times: dict[str, list[float]] = {arm: [] for arm in arms}
+    figures: dict[str, dict[str, float]] = {}
+    for repeat in range(repeats):
+        for arm, (workers, env) in arms.items():
+            seconds, figures[arm] = run_arm(name, STAGES[name], workers, work, repeat, env,
+                                            "" if env is None else f"-{arm}")
+            times[arm].append(seconds)
+            print(f"{name} {(labels or {}).get(arm, arm)}, repeat {repeat}: {seconds:.1f} s", flush=True)
+    return {"old_seconds": min(times["old"]), "new_seconds": min(times["new"]),
+            "old_all_seconds": times["old"], "new_all_seconds": times["new"],
+            "figures": {k: {"old": figures["old"][k], "new": figures["new"].get(k)} for k in figures["old"]}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--stages", nargs="+", choices=sorted(STAGES), default=list(DEFAULT))
@@ -116,20 +134,11 @@ def main() -> None:
     stages: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-stage-workers-") as tmp:
         for name in args.stages:
-            times: dict[str, list[float]] = {"old": [], "new": []}
-            figures: dict[str, dict[str, float]] = {}
-            for repeat in range(args.repeats):
-                for arm, workers in (("old", args.old_workers), ("new", args.workers)):
-                    seconds, figures[arm] = run_arm(name, STAGES[name], workers, Path(tmp), repeat)
-                    times[arm].append(seconds)
-                    print(f"{name} {arm} ({STAGES[name].setting} {workers}), repeat {repeat}: {seconds:.1f} s",
-                          flush=True)
-            old, new = min(times["old"]), min(times["new"])
+            arms = {"old": (args.old_workers, None), "new": (args.workers, None)}
             stages[name] = {"setting": f"{STAGES[name].section}.{STAGES[name].setting}",
-                            "old_seconds": old, "new_seconds": new, "speedup": old / new,
-                            "old_all_seconds": times["old"], "new_all_seconds": times["new"],
-                            "figures": {k: {"old": figures["old"][k], "new": figures["new"].get(k)}
-                                        for k in figures["old"]}}
+                            **compare_arms(name, arms, Path(tmp), args.repeats,
+                                           {arm: f"{arm} ({STAGES[name].setting} {w})" for arm, (w, _) in arms.items()})}
+            stages[name]["speedup"] = stages[name]["old_seconds"] / stages[name]["new_seconds"]
     old_total = sum(s["old_seconds"] for s in stages.values())
     new_total = sum(s["new_seconds"] for s in stages.values())
     result = {"machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
