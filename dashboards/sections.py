@@ -22,7 +22,7 @@ from m3t.metrics.stats import agreeing_digits
 from m3t.sgsa.table import adjacency_table, cross_table, in_display_units, layers_table
 from m3t.slr.table import recognition_table
 from m3t.smlm.table import production_table
-from m3t.tokenizers.ablation import ablation_table
+from m3t.tokenizers.ablation import ablation_table, fmt_or_dash
 
 TRAIN_STAGES = ("train-tokenizers", "train-backtranslation", "train-smlm", "train-slr",
                 "train-backtranslation-skeleton", "train-sgsa")
@@ -224,10 +224,6 @@ def _token_counts(record: RunRecord) -> dict[str, dict]:
     return {json.loads(f.read_text())["group"]: json.loads(f.read_text()) for f in files}
 
 
-def _fmt_metric(value: float | None, digits: int) -> str:
-    return "-" if value is None or value != value else f"{value:.{digits}f}"
-
-
 def codebooks(runs: list[RunRecord], params: Params) -> str:
     import plotly.graph_objects as go
 
@@ -243,7 +239,7 @@ def codebooks(runs: list[RunRecord], params: Params) -> str:
     # utilisation saturates when tokens barely outnumber codes: the columns beside it say how far it can be read
     stats = (("util %", "utilisation_pct", 1), ("perplexity / K", "perplexity_per_code", 2),
              ("count SD", "count_sd", 1), ("tokens / K", "tokens_per_code", 1))
-    rows = [[q.upper(), g] + [_fmt_metric(r.metrics.get(f"{g}/{key}"), digits) for _, key, digits in stats]
+    rows = [[q.upper(), g] + [fmt_or_dash(r.metrics.get(f"{g}/{key}"), digits) for _, key, digits in stats]
             for q, r in newest.items() for g in groups]
     out.append(h.table(["quantizer", "group"] + [name for name, _, _ in stats], rows, "codebook-stats",
                        "test split; a uniform code distribution has perplexity / K = 1, and at 10 tokens per code "

@@ -42,7 +42,8 @@ def dvc_command(setting: dict, stage: str = "train-tokenizers") -> list[str]:
     return args
 
 
-def _fmt(value: float | None, digits: int) -> str:
+def fmt_or_dash(value: float | None, digits: int) -> str:
+    """``value`` to ``digits`` decimals; "-" when it is missing or NaN."""
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
 
 
@@ -50,7 +51,7 @@ def _cell(values: list[float], digits: int) -> str:
     """One seed's value, or mean +- population SD over the seeds."""
     values = [v for v in values if v is not None and not math.isnan(v)]
     if len(values) < 2:
-        return _fmt(values[0] if values else None, digits)
+        return fmt_or_dash(values[0] if values else None, digits)
     mean = sum(values) / len(values)
     sd = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
     return f"{mean:.{digits}f} +- {sd:.{digits}f}"
