@@ -1,7 +1,7 @@
 """Fitting benchmark: today's solver vs the fast solver, and one clip per fit vs a signer's clips in one batch.
 
 Every arm fits the same clips of the embedded synthetic corpus (``data/corpus/synthetic``, written by the
-``synthetic-corpus`` stage; tracks from the simulated tracker, as ``fit-corpus`` makes them) in this process,
+``generate-corpus`` stage; tracks from the simulated tracker, as ``fit-corpus`` makes them) in this process,
 with ``--threads`` torch threads, and is scored against the corpus' ground truth:
 
 - ``old``: the first solver as it shipped: Adam, 200 + 100 steps (``fitting.solver: adam``), on the first sparse
@@ -248,7 +248,7 @@ def main() -> None:
     params = load_params()
     root = Path(params.corpora["synthetic"].root)
     if not (root / "clips.jsonl").exists():
-        raise SystemExit(f"no synthetic corpus under {root}: run `dvc repro synthetic-corpus` first")
+        raise SystemExit(f"no synthetic corpus under {root}: run `dvc repro generate-corpus` first")
     corpus = SyntheticCorpus(root)
     from m3t.corpora.base import open_corpus
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU benchmarks in one go, on a CUDA machine with the project importable and the embedded corpus generated
-# (`dvc repro synthetic-corpus`): DTW-PA-JPE cost matrices on the GPU, then the fitting sweep (signer batches on the
+# (`dvc repro generate-corpus`): DTW-PA-JPE cost matrices on the GPU, then the fitting sweep (signer batches on the
 # GPU vs per-clip fits on every CPU core of the same machine). Results go to $RESULTS (default benchmarks/results)
 # as dtw_gpu.json and fitting_gpu.json, with a log of each.
 #

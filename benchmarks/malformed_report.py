@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import collections
 import sys
+import sysconfig
 import tempfile
 from pathlib import Path
 
@@ -25,9 +26,12 @@ from malformed_cases import CASES, classify  # noqa: E402
 
 
 def cell(text: str, limit: int = 240) -> str:
-    """``text`` as one markdown table cell: one line, pipes escaped, capped (``classify`` already wrote the case's
-    temporary folder as ``<tmp>``)."""
+    """``text`` as one markdown table cell: one line, pipes escaped, capped; this machine's folders written as
+    ``<site-packages>`` and ``<repo>`` (``classify`` already wrote the case's temporary folder as ``<tmp>``), so the
+    committed report names no path of the machine that wrote it."""
     text = " ".join(str(text).split()).replace("|", "\\|")
+    for folder, name in ((sysconfig.get_paths()["purelib"], "<site-packages>"), (str(ROOT), "<repo>")):
+        text = text.replace(folder, name)
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 

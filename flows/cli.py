@@ -197,6 +197,14 @@ def _cmd_bt_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_docs_results(args: argparse.Namespace) -> int:
+    from dashboards.docs_pages import write_pages
+
+    for path in write_pages(".", args.out):
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_dashboard(args: argparse.Namespace) -> int:
     from dashboards.build import build_dashboard
     from m3t.config import load_params
@@ -331,6 +339,9 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("dashboard", help="build the static dashboard over the MLflow store and the DVC metrics")
     p.add_argument("--out", default=None, help="folder of the site (default: experiment.dashboard_dir)")
     p.set_defaults(func=_cmd_dashboard)
+    p = sub.add_parser("docs-pages", help="regenerate the docs' generated pages (results from the metrics files, home from the README)")
+    p.add_argument("--out", default=None, help="documentation folder (default: docs)")
+    p.set_defaults(func=_cmd_docs_results)
     p = sub.add_parser("slr-table", help="print Tab. 4 (recognition probe with intervals) from MLflow")
     p.set_defaults(func=_cmd_slr_table)
     p = sub.add_parser("sgsa-sweep", help="SGSA Tab. 1 (L = 0..5) or Tab. 2 (N = inf, 1, 2, 3, 5) by dvc exp, then "

@@ -59,3 +59,37 @@ def _torch_threads_restored():
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)
+
+
+# Markers of whole modules (registered in pyproject.toml, `--strict-markers`): what each module starts or runs.
+# `pytest -m "not slow"` is the fast lane; single slow tests of otherwise fast modules carry @pytest.mark.slow.
+MODULE_MARKS: dict[str, tuple[str, ...]] = {
+    "test_services": ("slow", "services"),
+    "test_nightly": ("slow", "services", "e2e"),
+    "test_mlflow_ui": ("slow", "services", "browser"),
+    "test_dashboard_browser": ("slow", "browser", "e2e"),
+    "test_browser_driver": ("slow", "browser"),
+    "test_fit_dask": ("slow", "services"),
+    "test_pipeline": ("slow", "e2e"),
+    "test_smlm_pipeline": ("slow", "e2e"),
+    "test_sgsa_pipeline": ("slow", "e2e"),
+    "test_slr_mlflow": ("slow", "e2e"),
+    "test_fusion_flow": ("slow", "e2e"),
+    "test_determinism": ("slow", "e2e"),
+    "test_faults": ("slow", "e2e"),
+    "test_arithmetic": ("slow", "e2e"),
+    "test_study": ("slow", "e2e"),
+    "test_dashboard": ("slow", "e2e"),
+}
+# Session fixtures that run pipeline stages: every test that uses one is slow whatever its module.
+SLOW_FIXTURES = frozenset({"tiny_workspace"})
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
+        names = set(MODULE_MARKS.get(module, ()))
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+            names |= {"slow", "e2e"}
+        for name in sorted(names):
+            item.add_marker(getattr(pytest.mark, name))
