@@ -352,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true")
     p.set_defaults(func=_cmd_sgsa_sweep)
     p = sub.add_parser("sgsa-study", help="the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, with intervals")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--split", default="test")
     p.add_argument("--out", default="metrics/sgsa-claims")
     p.set_defaults(func=_cmd_sgsa_study)
@@ -362,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_claims)
     p = sub.add_parser("study", help="run every variant and seed the claims need (resumable), then judge the claims")
     p.add_argument("--preset", default="study")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4],
+                   help="training seeds of every variant (default 5: the seed-half check splits them 2 + 3)")
     p.add_argument("--root", default=None, help="folder of everything the study writes (default studies/<preset>)")
     p.add_argument("--dry-run", action="store_true", help="print the plan (writes only the params files)")
     p.add_argument("--only", nargs="+", default=None, metavar="STAGE",

@@ -80,9 +80,17 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_arithmetic": ("slow", "e2e"),
     "test_study": ("slow", "e2e"),
     "test_dashboard": ("slow", "e2e"),
+    "test_corpus": ("slow",),          # generates whole corpora
+    "test_corpus_design": ("slow",),   # generates the study corpus
+    "test_fit_batches": ("slow",),     # fits signer batches to convergence
+    "test_experiment": ("slow",),      # opens fresh MLflow stores
 }
-# Session fixtures that run pipeline stages: every test that uses one is slow whatever its module.
-SLOW_FIXTURES = frozenset({"tiny_workspace"})
+# Fixtures that run pipeline stages or train models (by name, over every module): every test that uses one is
+# slow whatever its module. tiny_workspace: the tiny pipeline with MLflow runs; shards_dir: a fitted tiny corpus;
+# tokenizers / data (SLR): trained tokenizers and a probe corpus; overfit (SMLM), trained_pt / trained_sgsa: trained
+# models.
+SLOW_FIXTURES = frozenset({"tiny_workspace", "shards_dir", "tokenizers", "data", "overfit", "trained_pt",
+                           "trained_sgsa"})
 
 
 def pytest_collection_modifyitems(config, items):
@@ -90,6 +98,6 @@ def pytest_collection_modifyitems(config, items):
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
         names = set(MODULE_MARKS.get(module, ()))
         if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
-            names |= {"slow", "e2e"}
+            names.add("slow")
         for name in sorted(names):
             item.add_marker(getattr(pytest.mark, name))

@@ -88,6 +88,7 @@ def test_input_follows_stream_order_and_names_bad_clips(spec):
         spec.features({**params, "body": params["body"][:, :6]}, "c9")
 
 
+@pytest.mark.slow
 def test_overfits_tiny_clips_to_exact_text(trained):
     corpus, result = trained
     frames = [s.frames for s in corpus.train]
@@ -101,6 +102,7 @@ def test_overfits_tiny_clips_to_exact_text(trained):
     assert corpus.gloss_source.startswith("annotated (2 clips), ")  # the others: pseudo-glosses
 
 
+@pytest.mark.slow
 def test_checkpoint_rebuilds_model_vocabulary_and_layout(trained, tmp_path):
     corpus, result = trained
     loaded = load_backtranslation(result.best_path)  # read with weights_only=True
@@ -121,6 +123,7 @@ def test_checkpoint_rebuilds_model_vocabulary_and_layout(trained, tmp_path):
         load_backtranslation(tmp_path / "missing.pt")
 
 
+@pytest.mark.slow
 def test_killed_training_resumes_on_the_same_loss_curve(spec, tmp_path):
     """Weights, Adam, the plateau schedule and the RNG come back from ``last``: 3 epochs, a stop, then the rest
     equal an uninterrupted run (dropout on, so the restored RNG matters)."""
@@ -232,6 +235,7 @@ def test_pipeline_trains_one_model_per_language(shards_data, pipeline_models):
     assert json.loads((out / "metrics.json").read_text()) == pytest.approx(pipeline_models)
 
 
+@pytest.mark.slow
 def test_languages_trained_in_worker_processes_equal_one_process_on_their_threads(shards_data, tmp_path):
     """``backtranslation_train.workers: 2`` trains ASL-SYN and CSL-SYN in two spawned processes of one thread each
     (this process has two): checkpoints, metrics.json, languages.json, skipped.jsonl and the per-epoch records

@@ -137,6 +137,7 @@ def test_model_file_reader_keeps_arrays_and_numbers_and_names_what_it_cannot_rea
 
 
 # ------------------------------------------------------------------------------------------------ SMPL-FX model
+@pytest.mark.slow
 def test_depth_levels_group_joints_by_their_depth_below_the_root(fx):
     levels = _depth_levels(np.array([-1, 0, 0, 1, 3, 2, 0]))
     assert [lv.tolist() for lv in levels] == [[1, 2, 6], [3, 5], [4]]
@@ -298,6 +299,7 @@ def fx_files(tmp_path_factory):
     return ensure_fixture_files(tmp_path_factory)
 
 
+@pytest.mark.slow
 def test_mean_alignment_moves_flame_by_the_mean_displacement(fx_files):
     """``alignment='mean'``: the FLAME head is moved by its mean displacement onto the corresponding SMPL-X
     vertices (instead of the eyes'); the built mesh has int64 faces, the teeth's after SMPL-X's."""
@@ -326,6 +328,7 @@ def test_mean_alignment_moves_flame_by_the_mean_displacement(fx_files):
         build_smplfx(files, alignment="nose")
 
 
+@pytest.mark.slow
 def test_head_and_jaw_pose_correctives_come_from_flame(fx_files):
     """On the head, the head joint's pose correctives are FLAME's neck block and the jaw's FLAME's jaw block,
     blended with the neck ratio; the other posed joints keep only SMPL-X's (zero on the FLAME-only head)."""
@@ -551,6 +554,7 @@ def test_build_names_the_model_file_that_lacks_a_key_or_has_the_wrong_joints(fx_
             build_smplfx(SMPLFXFiles(files.smplx, flame, tmp_path / name))
 
 
+@pytest.mark.slow
 def test_expressions_are_flames_directions_300_to_400_even_when_the_file_has_more(fx_files, tmp_path):
     """FLAME 2020's shapedirs hold 300 shape then 100 expression directions; further ones are ignored, so the
     face stream keeps 100 expressions + 2 eyelids."""
@@ -630,6 +634,7 @@ def test_missing_licensed_files_are_listed_with_their_setting_source_and_the_way
     SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence).check()  # no eyelids: optional
 
 
+@pytest.mark.slow
 def test_all_300_flame_shape_directions_may_be_used_but_no_more(fx_files):
     files = SMPLFXFiles(fx_files.smplx, fx_files.flame_npz, fx_files.correspondence)
     assert build_smplfx(files, flame_shape_dims=300).identity_dirs.shape[0] == 310
@@ -652,6 +657,7 @@ def test_smplfx_body_passes_its_alignment_to_the_build(fx_files):
         SMPLFXBody(files, alignment="nose")
 
 
+@pytest.mark.slow
 def test_eyelid_buffers_read_from_one_npz_file_equal_the_two_npy_files(fx_files, tmp_path):
     """Pixel3DMM / VHAP ship ``l_eyelid.npy`` and ``r_eyelid.npy``; an ``.npz`` holding both keys is read the same."""
     lids = {side: np.load(fx_files.eyelids / f"{side}_eyelid.npy") for side in ("l", "r")}
@@ -714,6 +720,7 @@ def test_a_new_anny_model_reproduces_its_template_mesh_and_skeleton_at_rest(body
     assert float(torch.linalg.norm(model.base_delta[pelvis, :3, :3] - torch.eye(3))) > 1e-2
 
 
+@pytest.mark.slow
 def test_eye_alignment_puts_the_flame_eyes_midpoint_on_smplx_eyes_on_every_axis(fx_files):
     """``alignment='eyes'`` (the default): the FLAME head is moved by the displacement of its eyes' midpoint onto
     SMPL-X's, axis by axis; the built mesh's eye joints (FLAME's rows) then sit on SMPL-X's eyes."""
@@ -787,6 +794,7 @@ def test_metric_joints_are_the_rotation_streams_bones_as_integer_joint_entries(f
     torch.testing.assert_close(got, dense, atol=1e-5, rtol=0)
 
 
+@pytest.mark.slow
 def test_the_body_factory_hands_the_flame_shape_count_to_smplfx_and_keeps_no_geometry_in_its_state(fx_files):
     from m3t.body.config import BodyConfig
     from m3t.body.factory import load_body_model

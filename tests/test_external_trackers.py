@@ -78,6 +78,7 @@ def test_long_gaps_are_held_and_rest_when_uncovered(fx):
     assert (fused.source["body"] < 0).all() and np.allclose(fused.init["body"], rest["body"])
 
 
+@pytest.mark.slow
 def test_refinement_from_fused_initialisation(fx, truth, tmp_path):
     params = truth.params
     write_nlf(tmp_path / "nlf.npz", fx.layout, truth)

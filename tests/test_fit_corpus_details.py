@@ -195,6 +195,7 @@ def test_two_clips_of_a_signer_are_fitted_together(body, synthetic_root, tmp_pat
     assert [o.frames for o in outcomes] == [8, 6]
 
 
+@pytest.mark.slow
 def test_a_batch_fit_is_keyed_by_its_members_tracks_and_chunking(body, synthetic_root, tmp_path):
     """Another tracker (other tracks) or another chunking refits the batch; the same inputs find its parts."""
     clips = clips_of(synthetic_ctx(tmp_path, synthetic_root, body))
@@ -291,6 +292,7 @@ def test_a_signers_batch_leaves_a_clip_with_tracker_outputs_to_its_own_fit(body,
         assert math.isfinite(o.metrics["reproj_px_parts"]) and o.frames == o.track_frames > 0
 
 
+@pytest.mark.slow
 def test_a_real_clips_track_and_fit_follow_its_media_and_its_tracker_outputs(body, pose_root, tmp_path):
     root = tmp_path / "collection"
     shutil.copytree(pose_root, root)
@@ -386,6 +388,7 @@ def artifacts(client, run_id: str, folder: str | None = None) -> set[str]:
     return {a.path for a in client.list_artifacts(run_id, folder)}
 
 
+@pytest.mark.slow
 def test_a_synthetic_run_logs_its_sections_quality_and_fit_pictures(body, synthetic_root, tmp_path, monkeypatch):
     import m3t.fitting.corpus as engine
 
@@ -621,6 +624,7 @@ def test_lbfgs_spends_at_most_its_evaluation_budget():
 
 
 # ------------------------------------------------------------------------------------------ executors
+@pytest.mark.slow
 def test_the_local_process_pool_spawns_single_threaded_workers():
     """Spawned, not forked: a forked child inherits torch's thread pool and locks of a process that already
     fitted; each worker runs with one intra-op thread."""

@@ -37,6 +37,7 @@ def read_jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_fingerspelling_letters_and_a_spelled_word(tmp_path, body):
     options = {"languages": ["ase"], "words_per_language": 1, "min_letters": 2, "max_letters": 2}
     ctx = context(tmp_path, body, "fingerspelling", {"fingerspelling": {"options": options}})
@@ -79,6 +80,7 @@ def phoenix(tmp_path: Path, body, **fit_corpus) -> tuple[FitContext, fx.Fixture]
     return context(tmp_path, body, "phoenix14t", corpora, **fit_corpus), fixture
 
 
+@pytest.mark.slow
 def test_bad_rows_and_undetectable_frames_are_quarantined(tmp_path, body):
     pytest.importorskip("mediapipe", reason="MediaPipe not installed: bash .ci/install-tracking")
     ctx, fixture = phoenix(tmp_path, body)

@@ -216,6 +216,7 @@ def test_slt_import_keeps_the_arrays_as_they_are(tmp_path):
     assert InputSpec.from_layout("model", layout).dim == 1024  # a back-translation model reads them as they are
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("corpus", ["mead", "soke_smplx"])
 def test_fit_and_log_pictures_imports_without_a_fit_camera(tmp_path, tmp_path_factory, corpus):
     """The stage's path (MLflow off): face-only shards build no body model (the FLAME path points nowhere);

@@ -49,6 +49,7 @@ def clip(body):
     return params, identity, camera, track
 
 
+@pytest.mark.slow
 def test_fit_recovers_ground_truth(body, clip):
     params, identity, camera, track = clip
     result = fit_track(track, body, FIT)

@@ -234,6 +234,7 @@ def test_anny_takes_no_tracker_stream(fx, truth, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ refining
+@pytest.mark.slow
 def test_refinement_around_the_fused_initialisation_beats_the_rest_pose(fx, truth, tmp_path):
     media = write_clip(tmp_path, fx, truth)
     fused = initialise_from_trackers(fx, find_tracker_outputs(media), T)

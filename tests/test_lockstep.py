@@ -129,6 +129,7 @@ def clips(body):
     return out
 
 
+@pytest.mark.slow
 def test_fit_tracks_lockstep_fits_each_clip_on_its_own(body, clips):
     cfg = FittingConfig(solver="lbfgs_lockstep", iterations=30, camera_iterations=10)
     batch = fit_tracks(clips, body, cfg)
@@ -146,6 +147,7 @@ def test_fit_tracks_lockstep_fits_each_clip_on_its_own(body, clips):
         assert len(result.loss_curve) <= cfg.iterations
 
 
+@pytest.mark.slow
 def test_fit_tracks_lockstep_fits_as_well_as_per_clip_lbfgs(body, clips):
     """Per-clip L-BFGS (strong Wolfe) vs lock-step (Armijo backtracking): final reprojection within 10 %."""
     lbfgs = FittingConfig(iterations=60, camera_iterations=10)

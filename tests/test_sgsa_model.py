@@ -278,6 +278,7 @@ def test_counter_decoding_stops_at_the_trained_length(trained_pt):
     assert trained_pt.training is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("decoder_layers", [2, 0], ids=["SGSA", "PT"])
 def test_counter_decoding_stops_at_the_trained_length_whatever_the_seed(decoder_layers):
     """Trained with the default counter weight, the counter ends free-running generation at the true length on at
@@ -374,6 +375,7 @@ def test_ground_truth_counter_runs_the_true_length(system, trained_pt, trained_s
     torch.testing.assert_close(again[0, :, :-1], frames[:, :-1], atol=1e-5, rtol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("decoder_layers", [2, 0], ids=["SGSA", "PT"])
 def test_overfit_three_clips(decoder_layers):
     torch.manual_seed(4)

@@ -149,6 +149,7 @@ def test_interleaving_follows_the_stream_order():
 
 
 # ----------------------------------------------------------------------------------------- trimming
+@pytest.mark.slow
 @pytest.mark.parametrize("reference", ["clip_rest", "body_rest"])
 def test_trimming_cuts_exactly_the_rest_frames(corpus, body, reference):
     sc = isolated(corpus)[0]

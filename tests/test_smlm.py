@@ -185,6 +185,7 @@ def test_checkpoint_rebuilds_the_model_and_vocabulary(overfit, vocab, tmp_path):
         load_smlm(tmp_path / "junk.pt")
 
 
+@pytest.mark.slow
 def test_killed_training_resumes_on_the_same_loss_curve(vocab, tmp_path):
     """A ``last`` checkpoint carries weights, optimiser, schedule and RNG: two epochs, a stop, then the rest
     give the run an uninterrupted training gives (dropout on, so the restored RNG matters)."""
@@ -216,6 +217,7 @@ def test_run_key_changes_with_what_the_run_depends_on(vocab):
     assert key != run_key(TINY, cfg, vocab, "w")
 
 
+@pytest.mark.slow
 def test_production_only_never_trains_the_text_head(vocab, tmp_path):
     examples = make_examples(vocab)
     cfg = SMLMTrainConfig(epochs=3, batch_size=2, translation_objective=False, device="cpu", weight_decay=0.0)
@@ -299,6 +301,7 @@ def _ddp_worker(rank: int, world: int, rdv: str, out: str) -> None:
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_data_parallel_on_gloo_keeps_ranks_in_sync(tmp_path):
     import torch.multiprocessing as mp
 

@@ -200,6 +200,7 @@ def test_matches_smplx_package_away_from_the_head(fx, fx_files):
     assert torch.allclose(ours.joints[:, [fx.joint_names.index(n) for n in names]], theirs, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_fit_recovers_synthetic_smplfx(fx):
     params = smplfx_motion(fx, frames=12)
     identity = torch.zeros(110)
@@ -218,6 +219,7 @@ def test_fit_recovers_synthetic_smplfx(fx):
     assert result.loss_curve[-1] < 0.1 * result.loss_curve[0]
 
 
+@pytest.mark.slow
 def test_fit_corpus_runs_with_smplfx(fx_files, tmp_path):
     """fit-corpus end to end with ``body.model: smplfx`` (load_body_model) on a tiny SMPL-FX corpus."""
     from m3t.corpora.clip import Clip

@@ -54,6 +54,7 @@ def sequences(shards_dir: Path, group: str, split: str = "train") -> list[np.nda
 TINY_MODEL = TokenizerConfig(width=32, depth=2)
 
 
+@pytest.mark.slow
 def test_tiny_tokenizer_overfits_a_tiny_shard(shards_dir, tmp_path, body):
     # The 150-epoch trajectory of this tiny model depends on the float reduction order: with 2 threads the loss
     # falls ~8x, with 1 only ~3x (FSQ's rounding amplifies the differences). Fixed here so that the assertion
@@ -183,6 +184,7 @@ def _ddp_worker(rank: int, world: int, rdv: str, shards: str, out: str) -> None:
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_ddp_on_gloo_keeps_ranks_in_sync(shards_dir, tmp_path):
     import torch.multiprocessing as mp
 
@@ -194,6 +196,7 @@ def test_ddp_on_gloo_keeps_ranks_in_sync(shards_dir, tmp_path):
     assert not any(torch.equal(a[n], torch.zeros_like(a[n])) for n in a if n.endswith("weight"))
 
 
+@pytest.mark.slow
 def test_flow_trains_tokenizers_and_writes_token_shards(shards_dir, tmp_path, body):
     from prefect.testing.utilities import prefect_test_harness
 

@@ -267,6 +267,7 @@ def part_median_errors(body, result, track, correspondence) -> dict[str, float]:
     return {k: float(np.median(err[:, s][confident[:, s]])) for k, s in PARTS.items() if confident[:, s].any()}
 
 
+@pytest.mark.slow
 def test_fitting_explains_real_fingerspelling(body):
     """Fit Anny (from the rest pose, unknown camera) to real MediaPipe tracks of three sign languages.
 

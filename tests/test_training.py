@@ -238,6 +238,7 @@ def test_worker_split_uses_processes_only_for_several_jobs_on_the_cpu_without_dd
     assert worker_split(2, 3, "cpu", world_size=2) == (1, 0)
 
 
+@pytest.mark.slow
 def test_run_jobs_in_workers_returns_in_job_order_with_the_records_of_one_process_per_job():
     """Here, each job's records reach on_epoch as they happen; in two spawned one-thread workers the same
     results come back in job order and the records are replayed in job order."""
@@ -259,6 +260,7 @@ def test_run_jobs_in_workers_returns_in_job_order_with_the_records_of_one_proces
         run_jobs(_job_square, [1, 2, 3], ["a", "b"])
 
 
+@pytest.mark.slow
 def test_run_jobs_raises_a_jobs_error_as_raised_and_names_a_worker_that_died():
     from m3t.training import run_jobs
 
@@ -288,6 +290,7 @@ STAGE_POOLS = {  # a stage whose worker writes its pid to the file {pid!r} and s
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pool", sorted(STAGE_POOLS))
 def test_a_worker_ends_itself_when_the_stage_process_is_killed(tmp_path, pool):
     """``kill -9`` of a stage leaves its pool no chance to stop the workers; each notices its parent is gone and
