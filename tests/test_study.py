@@ -155,7 +155,7 @@ def test_dry_run_prints_the_plan_and_writes_only_the_params_files(params, tmp_pa
     assert cli_main(["--params", str(params), "study", "--dry-run", "--preset", "tiny", "--root", str(root)]) == 0
     out = capsys.readouterr().out
     lines = [line for line in out.splitlines() if line.startswith("[")]
-    assert len(lines) == len(plan(params, "tiny", [0, 1, 2], root))
+    assert len(lines) == len(plan(params, "tiny", [0, 1, 2, 3, 4], root))  # 5 seeds by default
     assert lines[0].startswith(f"[1/{len(lines)}] shared generate-corpus: python -m m3t.stages.generate_corpus")
     assert "experiment.enabled is false" in out
     written = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
@@ -165,8 +165,9 @@ def test_dry_run_prints_the_plan_and_writes_only_the_params_files(params, tmp_pa
                      "--only", "evaluate-slr", "sgsa-n1-s0"]) == 0
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[")]
     assert [line.split(":")[0] for line in lines] == [
-        "[1/5] slr-s0 evaluate-slr", "[2/5] slr-s1 evaluate-slr", "[3/5] slr-s2 evaluate-slr",
-        "[4/5] sgsa-n1-s0 train-sgsa", "[5/5] sgsa-n1-s0 evaluate-sgsa"]
+        "[1/7] slr-s0 evaluate-slr", "[2/7] slr-s1 evaluate-slr", "[3/7] slr-s2 evaluate-slr",
+        "[4/7] slr-s3 evaluate-slr", "[5/7] slr-s4 evaluate-slr",
+        "[6/7] sgsa-n1-s0 train-sgsa", "[7/7] sgsa-n1-s0 evaluate-sgsa"]
 
 
 def test_bad_requests_are_refused_with_the_key_or_name(params, tmp_path, capsys):
