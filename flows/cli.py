@@ -15,13 +15,14 @@
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
     m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
     m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
-    m3t sgsa-study [--seeds 0 1 2]        the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
+    m3t sgsa-study [--seeds 0 1 2 3 4]    the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t claims [--min-seeds 3]            the papers' claims on the runs: paper vs ours, interval, verdict, run ids
-    m3t study [--preset study] [--seeds 0 1 2] [--dry-run] [--only ...]
+    m3t study [--preset study] [--seeds 0 1 2 3 4] [--dry-run] [--only ...]
                                           run every variant and seed the claims need (resumable), judge them
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
+    m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
 """
 from __future__ import annotations
 
