@@ -30,6 +30,7 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
     ``index.html``."""
     out = Path(out or params.experiment.dashboard_dir)
     runs = fetch_runs(params.experiment, root)
+    study_claims = Path(params.data.metrics_dir) / "study" / "claims.json"  # `m3t study`'s verdicts, when judged
     generated = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     tmp = out.with_name(out.name + ".tmp")
     if tmp.exists():
@@ -42,9 +43,9 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
         "index.html": ("M3T platform", sections.overview(runs, params, root), False),
         "tables.html": ("Paper tables", sections.paper_tables(runs), False),
         "curves.html": ("Training curves", sections.curves(runs, params.experiment, root), True),
-        "claims.html": ("The papers' claims on these runs", sections.claims(runs) + sections.saved_claims(
-            Path(params.data.metrics_dir) / "tab3" / "claims.json", "M3T Tab. 3 study: FSQ against three VQs",
-            "m3t study --seeds 0 1 2 3 4 --only generate-corpus fit-corpus train-tokenizers") + sections.sgsa_study(
+        "claims.html": ("The papers' claims on these runs", sections.claims(runs) + (sections.saved_claims(
+            study_claims, "The claims study: every claim over 5 seeds on the study corpus", "m3t study")
+            if study_claims.exists() else "") + sections.sgsa_study(
             Path(params.data.metrics_dir) / "sgsa-claims" / "claims.json")
             + sections.repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
         "codebooks.html": ("Codebooks: utilisation and token histograms", sections.codebooks(runs, params), True),
