@@ -84,6 +84,12 @@ def _missing(rel: str, stage: str) -> str:
     return f"*Not measured yet: `{rel}` is missing; run `dvc repro {stage}`.*\n"
 
 
+def _section(root: Path, rel: str, stage: str, head: str, body) -> str:
+    """``head``, then ``body(metrics)`` of the JSON file ``rel``, or what to run when it is missing."""
+    m = _load(root, rel)
+    return head + "\n" + (_missing(rel, stage) if m is None else body(m))
+
+
 def fitting_section(root: Path) -> str:
     out = ["## Fitting (`fit-corpus`, `fit-corpus-fingerspelling`)\n",
            "Means over fitted clips. `joint_mm`: joints in the camera frame after centring (includes the depth "
@@ -110,86 +116,82 @@ def fitting_section(root: Path) -> str:
 
 
 def tokenizer_section(root: Path) -> str:
-    rel = "models/tokenizers/metrics.json"
-    m = _load(root, rel)
     head = ("## Tokenizers (`train-tokenizers`)\n\nTest split unless marked. Utilisation needs many tokens per code "
             "to mean anything: N tokens spread uniformly over K codes leave (1 - 1/K)^N unused, so read it with "
             "tokens / K (the embedded test split is small; the study corpus is where Tab. 3 is judged).\n")
-    if m is None:
-        return head + "\n" + _missing(rel, "train-tokenizers")
-    rows = [[group, f"{m[group]['codebook_size']:.0f}", num(m[group]["test_pa_vpe_mm"]),
-             num(m[group]["test_vpe_mm"]), f"{m[group]['utilisation_pct']:.1f} %",
-             num(m[group].get("perplexity_per_code"), 2), num(m[group].get("tokens_per_code"), 3),
-             num(m[group].get("count_sd")), f"{m[group]['all_splits_utilisation_pct']:.1f} %",
-             num(m[group].get("all_splits_tokens_per_code"), 3)] for group in ("body", "hand", "face") if group in m]
-    return head + "\n" + markdown_table(
-        ["group", "codes K", "PA-VPE mm", "VPE mm", "utilisation", "perplexity / K", "tokens / K", "count SD",
-         "utilisation, all splits", "tokens / K, all splits"], rows)
+
+    def body(m: dict) -> str:
+        rows = [[group, f"{m[group]['codebook_size']:.0f}", num(m[group]["test_pa_vpe_mm"]),
+                 num(m[group]["test_vpe_mm"]), f"{m[group]['utilisation_pct']:.1f} %",
+                 num(m[group].get("perplexity_per_code"), 2), num(m[group].get("tokens_per_code"), 3),
+                 num(m[group].get("count_sd")), f"{m[group]['all_splits_utilisation_pct']:.1f} %",
+                 num(m[group].get("all_splits_tokens_per_code"), 3)] for group in ("body", "hand", "face") if group in m]
+        return markdown_table(
+            ["group", "codes K", "PA-VPE mm", "VPE mm", "utilisation", "perplexity / K", "tokens / K", "count SD",
+             "utilisation, all splits", "tokens / K, all splits"], rows)
+    return _section(root, "models/tokenizers/metrics.json", "train-tokenizers", head, body)
 
 
 def smlm_section(root: Path) -> str:
-    rel = "metrics/smlm/metrics.json"
-    m = _load(root, rel)
     head = ("## Sign Motion Language Model (`evaluate-smlm`)\n\nTest split, `m3t` motion definition: raw "
             "accumulated DTW cost in metres (SOKE's convention; it grows with length) and per aligned frame. Own "
             "translation: the SMLM translating ground-truth tokens (sacreBLEU 13a BLEU-4). Back-translation: the "
             "generated motion through the frozen judge (SL-T definition; CSL per character).\n")
-    if m is None:
-        return head + "\n" + _missing(rel, "evaluate-smlm")
-    overall = markdown_table(
-        ["region", "DTW-JPE (m)", "DTW-PA-JPE (m)", "DTW-JPE per frame (m)", "DTW-PA-JPE per frame (m)"],
-        [[region, num(m.get(f"dtw_jpe_{key}_m")), num(m.get(f"dtw_pa_jpe_{key}_m")),
-          num(m.get(f"dtw_jpe_{key}_pathnorm_m")), num(m.get(f"dtw_pa_jpe_{key}_pathnorm_m"))]
-         for region, key in (("body", "body"), ("hands", "hand"))]
-        + [["face (DTW-VPE)", num(m.get("dtw_vpe_face_m")), "-", num(m.get("dtw_vpe_face_pathnorm_m")), "-"]])
-    counts = (f"Clips scored: {m.get('clips_scored', 0):.0f} (cut to the model's limits: {m.get('clips_cut', 0):.0f}; "
-              f"empty generations: {pct(m.get('empty_rate'))}; ended by EOS: {pct(m.get('stopped_rate'))}).\n")
-    text = markdown_table(
-        ["language", "own translation BLEU-4", "back-translation ROUGE-L", "back-translation BLEU-4", "sentences"],
-        [[lang, num(m.get(f"translation/{lang}/bleu4")), num(m.get(f"bt/slt/{lang}/rouge_l")),
-          num(m.get(f"bt/slt/{lang}/bleu4")), num(m.get(f"bt/slt/{lang}/sentences"))] for lang in LANGUAGES])
-    return "\n".join([head, overall, counts, text])
+
+    def body(m: dict) -> str:
+        overall = markdown_table(
+            ["region", "DTW-JPE (m)", "DTW-PA-JPE (m)", "DTW-JPE per frame (m)", "DTW-PA-JPE per frame (m)"],
+            [[region, num(m.get(f"dtw_jpe_{key}_m")), num(m.get(f"dtw_pa_jpe_{key}_m")),
+              num(m.get(f"dtw_jpe_{key}_pathnorm_m")), num(m.get(f"dtw_pa_jpe_{key}_pathnorm_m"))]
+             for region, key in (("body", "body"), ("hands", "hand"))]
+            + [["face (DTW-VPE)", num(m.get("dtw_vpe_face_m")), "-", num(m.get("dtw_vpe_face_pathnorm_m")), "-"]])
+        counts = (f"Clips scored: {m.get('clips_scored', 0):.0f} (cut to the model's limits: "
+                  f"{m.get('clips_cut', 0):.0f}; empty generations: {pct(m.get('empty_rate'))}; ended by EOS: {pct(m.get('stopped_rate'))}).\n")
+        text = markdown_table(
+            ["language", "own translation BLEU-4", "back-translation ROUGE-L", "back-translation BLEU-4", "sentences"],
+            [[lang, num(m.get(f"translation/{lang}/bleu4")), num(m.get(f"bt/slt/{lang}/rouge_l")),
+              num(m.get(f"bt/slt/{lang}/bleu4")), num(m.get(f"bt/slt/{lang}/sentences"))] for lang in LANGUAGES])
+        return "\n".join([overall, counts, text])
+    return _section(root, "metrics/smlm/metrics.json", "evaluate-smlm", head, body)
 
 
 def backtranslation_section(root: Path) -> str:
-    rel = "metrics/backtranslation/metrics.json"
-    m = _load(root, rel)
     head = ("## Back-translation judge, ground-truth upper bound (`evaluate-backtranslation`)\n\nThe test split's "
             "fitted motion through the judge (SL-T definition). The embedded corpus has one test sentence per "
             "language, so these figures cannot rank systems; the claims study's corpus can.\n")
-    if m is None:
-        return head + "\n" + _missing(rel, "evaluate-backtranslation")
-    return head + "\n" + markdown_table(
-        ["language", "ROUGE-L", "BLEU-1", "BLEU-4", "sentences"],
-        [[lang, num(m.get(f"slt/{lang}/rouge_l")), num(m.get(f"slt/{lang}/bleu1")), num(m.get(f"slt/{lang}/bleu4")),
-          num(m.get(f"slt/{lang}/sentences"))] for lang in LANGUAGES])
+
+    def body(m: dict) -> str:
+        return markdown_table(
+            ["language", "ROUGE-L", "BLEU-1", "BLEU-4", "sentences"],
+            [[lang, num(m.get(f"slt/{lang}/rouge_l")), num(m.get(f"slt/{lang}/bleu1")), num(m.get(f"slt/{lang}/bleu4")),
+              num(m.get(f"slt/{lang}/sentences"))] for lang in LANGUAGES])
+    return _section(root, "metrics/backtranslation/metrics.json", "evaluate-backtranslation", head, body)
 
 
 def sgsa_section(root: Path) -> str:
-    rel = "metrics/sgsa/metrics.json"
-    m = _load(root, rel)
     head = ("## SGSA and Progressive Transformers (`evaluate-sgsa`)\n\nTest split, on the normalised skeleton; "
             "lengths decided by each model's own counter. DTW-JPE: raw cost (mean of body and hands, mm) and per "
             "aligned frame; ROUGE-L: the skeleton judge (SL-T definition). The SMLM's motion is posed into the same "
             "skeleton; the ground truth through the same judge is its ceiling.\n")
-    if m is None:
-        return head + "\n" + _missing(rel, "evaluate-sgsa")
-    rows = []
-    for system, name in (("pt", "Progressive Transformers"), ("sgsa", "SGSA"), ("smlm", "M3T SMLM"),
-                         ("ground_truth", "ground-truth motion")):
-        g = {k[len(f"{system}/test/"):]: v for k, v in m.items() if k.startswith(f"{system}/test/")}
-        if not g:
-            continue
-        raw = g.get("dtw_jpe_mean_m")
-        length = ("ends by EOS" if system == "smlm" else "-") if "length_ratio_median" not in g else (
-            f"{num(g['length_ratio_median'])} / {pct(g.get('length_within_25'))} / {pct(g.get('stopped_rate'))}")
-        rows.append([name, "-" if raw is None else num(1000 * raw),
-                     "-" if "dtw_jpe_body_pathnorm_m" not in g else
-                     f"{num(1000 * g['dtw_jpe_body_pathnorm_m'])} / {num(1000 * g['dtw_jpe_hand_pathnorm_m'])}",
-                     length, num(g.get("bt/slt_rouge_l")), num(g.get("bt/slt_bleu4"))])
-    return head + "\n" + markdown_table(
-        ["system", "DTW-JPE raw (mm)", "DTW-JPE per frame (mm), body / hands",
-         "length: median ratio / within +-25 % / stopped by counter", "ROUGE-L", "BLEU-4"], rows)
+
+    def body(m: dict) -> str:
+        rows = []
+        for system, name in (("pt", "Progressive Transformers"), ("sgsa", "SGSA"), ("smlm", "M3T SMLM"),
+                             ("ground_truth", "ground-truth motion")):
+            g = {k[len(f"{system}/test/"):]: v for k, v in m.items() if k.startswith(f"{system}/test/")}
+            if not g:
+                continue
+            raw = g.get("dtw_jpe_mean_m")
+            length = ("ends by EOS" if system == "smlm" else "-") if "length_ratio_median" not in g else (
+                f"{num(g['length_ratio_median'])} / {pct(g.get('length_within_25'))} / {pct(g.get('stopped_rate'))}")
+            rows.append([name, "-" if raw is None else num(1000 * raw),
+                         "-" if "dtw_jpe_body_pathnorm_m" not in g else
+                         f"{num(1000 * g['dtw_jpe_body_pathnorm_m'])} / {num(1000 * g['dtw_jpe_hand_pathnorm_m'])}",
+                         length, num(g.get("bt/slt_rouge_l")), num(g.get("bt/slt_bleu4"))])
+        return markdown_table(
+            ["system", "DTW-JPE raw (mm)", "DTW-JPE per frame (mm), body / hands",
+             "length: median ratio / within +-25 % / stopped by counter", "ROUGE-L", "BLEU-4"], rows)
+    return _section(root, "metrics/sgsa/metrics.json", "evaluate-sgsa", head, body)
 
 
 def slr_section(root: Path) -> str:
