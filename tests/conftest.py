@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -27,11 +28,19 @@ def body():
 
 
 @pytest.fixture(scope="session")
-def fx(tmp_path_factory):
-    """The SMPL-FX model built from the synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`)."""
-    from smplfx_fixtures import ensure_fixture_files, fixture_body
+def fx_files(tmp_path_factory):
+    """The synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`), written once per test run."""
+    from smplfx_fixtures import ensure_fixture_files
 
-    return fixture_body(ensure_fixture_files(tmp_path_factory))
+    return ensure_fixture_files(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def fx(fx_files):
+    """The SMPL-FX model built from the synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`)."""
+    from smplfx_fixtures import fixture_body
+
+    return fixture_body(fx_files)
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +57,16 @@ def tiny_workspace(body, tmp_path_factory):
     from tiny_pipeline import build_workspace
 
     return build_workspace(tmp_path_factory.mktemp("workspace"), body)
+
+
+@pytest.fixture(scope="module")
+def shards_dir(body, tmp_path_factory) -> Path:
+    """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames), in the folder of
+    corpus ``synthetic`` under a shards root (``data.shards_root`` = its parent)."""
+    from builders import SPLITS
+    from tiny_pipeline import write_shards
+
+    return write_shards(tmp_path_factory.mktemp("shards") / "synthetic", body, SPLITS, text=lambda seed: "t")
 
 
 @pytest.fixture(autouse=True)

@@ -30,7 +30,7 @@ import corpus_fixtures as cfx
 import numpy as np
 import pytest
 import torch
-from test_fitting import front_camera, smooth_motion
+from builders import front_camera, smooth_motion
 
 from m3t.config import load_params
 from m3t.corpora.clip import Clip
