@@ -1,4 +1,4 @@
-"""Shared builders of the test suite: motions, a camera, the tiny preset's params and the tiny tokenizer config.
+"""Shared builders of the test suite: motions, a camera, the tiny preset's params, tiny tokenizers and their configs.
 
 Imported by test modules of several components (``from builders import smooth_motion``); the fixtures that several
 components share are in ``conftest.py``.
@@ -11,10 +11,12 @@ import numpy as np
 import roma
 import torch
 
+from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import Camera, look_at
 from m3t.config import load_params
-from m3t.tokenizers.config import TokenizerConfig
+from m3t.tokenizers.config import TokenizerConfig, VAEConfig
+from m3t.tokenizers.vae import MotionTokenizer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -80,3 +82,39 @@ def tiny_params(tmp_path: Path, **fit_corpus):
 # Clips per split of the tiny fitted shards (the ``shards_dir`` fixture of conftest.py) and the tiny tokenizer.
 SPLITS = {"train": 4, "dev": 1, "test": 1}
 TINY_MODEL = TokenizerConfig(width=32, depth=2)
+
+
+# ------------------------------------------------------------------------------------------------ tiny tokenizers
+# A small hand-made layout of the four motion streams (no body model needed to tokenise) and untrained tokenizers
+# of its three groups; the tokenizer-training tests' model and config.
+TINY_TOKENIZER = TokenizerConfig(width=8, depth=2, dilation_growth=3)
+LAYOUT = ModalityLayout(
+    (Modality("body", "rotation6d", ("spine", "neck")),
+     Modality("left_hand", "rotation6d", ("wrist.L",), mirror_of="right_hand"),
+     Modality("right_hand", "rotation6d", ("wrist.R",), mirror_of="left_hand"),
+     Modality("face", "scalar", ("jaw", "smile", "blink"), bounds=(0.0, 1.0))),
+    ("height", "weight"))
+DIMS = {"body": LAYOUT.dims["body"], "hand": LAYOUT.dims["right_hand"], "face": LAYOUT.dims["face"]}
+NO_FACE = ModalityLayout(LAYOUT.modalities[:3], LAYOUT.identity_labels)
+"""A layout without the face stream: a shard fitted with another body model."""
+TINY_VAE = VAEConfig(input_dim=3, levels=(5, 5, 4), width=8, depth=1)  # the tokenizer-training tests' model
+
+
+def tiny_train_cfg(cache_dir, epochs: int, batch_size: int, windows_per_clip: int = 1, **extra):
+    """The tokenizer-training tests' config: 8-frame windows, one warm-up epoch, on the CPU unless ``extra``
+    names a device."""
+    from m3t.tokenizers.config import TokenizerTrainConfig
+
+    return TokenizerTrainConfig(cache_dir=str(cache_dir), epochs=epochs, warmup_epochs=1, batch_size=batch_size,
+                                window=8, windows_per_clip=windows_per_clip, **{"device": "cpu", **extra})
+
+
+def tiny_tokenizers(dims: dict[str, int] = DIMS, seed: int = 0) -> dict[str, MotionTokenizer]:
+    """Untrained tokenizers of the three groups, with non-trivial normalisation statistics."""
+    torch.manual_seed(seed)
+    models = {}
+    for group, dim in dims.items():
+        model = MotionTokenizer(TINY_TOKENIZER.vae_config(group, dim)).eval()
+        model.set_normalisation(0.1 * torch.randn(dim), 0.5 + torch.rand(dim))
+        models[group] = model
+    return models

@@ -255,3 +255,169 @@ def test_refinement_around_the_fused_initialisation_beats_the_rest_pose(fx, trut
     # track pulls it off), ~100 mm from the rest pose.
     fused_err, rest_err = joint_error_m(from_fused), joint_error_m(from_rest)
     assert fused_err < 0.25 * rest_err, (fused_err, rest_err)
+
+
+# ------------------------------------------------------------------------------------------ fusion
+def test_a_body_model_that_cannot_take_the_trackers_is_told_what_and_why():
+    from m3t.fitting.fusion import FusionUnsupported
+
+    exc = FusionUnsupported("anny", ("nlf -> body: 2 of its 2 joints are not SMPL-X joints", "wilor -> left_hand: x"))
+    assert isinstance(exc, ValueError) and exc.body_model == "anny" and len(exc.unusable) == 2
+    assert str(exc) == ("body model 'anny' cannot take nlf -> body: 2 of its 2 joints are not SMPL-X joints; "
+                        "wilor -> left_hand: x (the tracker converters need SMPL-FX's SMPL-X / FLAME layout)")
+
+
+def test_unusable_tracker_streams_name_the_first_three_offending_labels():
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import unusable_outputs
+    from m3t.trackers.external import TRACKERS
+
+    assert unusable_outputs(smplfx_layout(100), TRACKERS) == ()
+    layout = ModalityLayout((Modality("body", "rotation6d", ("spine01", "upperarm01_l", "neck01")),
+                             Modality("left_hand", "scalar", ("curl",)),
+                             Modality("face", "scalar", ("jawOpen", "eyeBlink_L"))),
+                            ("age", "gender", "height", "weight"))
+    assert unusable_outputs(layout, ("nlf", "pixel3dmm")) == (
+        "nlf -> body: 3 of its 3 joints are not SMPL-X joints ('spine01', 'upperarm01_l', 'neck01')",
+        "nlf -> left_hand: left_hand is scalar, the converters write rotations",
+        "nlf -> right_hand: the layout has no 'right_hand' modality",
+        "nlf -> identity: identity ('age', 'gender', 'height', ...) lacks the 10 SMPL-X betas 'smplx_beta_<i>'",
+        ("pixel3dmm -> face: face is 2 values ('jawOpen', 'eyeBlink_L'), not FLAME's 100 expressions + 2 eyelids + "
+         "jaw rotation"),
+        "pixel3dmm -> identity: identity ('age', 'gender', 'height', ...) has no FLAME shape 'flame_shape_<iii>'")
+    mixed = ModalityLayout((Modality("body", "rotation6d", ("neck", "spine01", "left_wrist")),), ("smplx_beta_0",))
+    assert unusable_outputs(mixed, ("wilor",)) == ("wilor -> left_hand: the layout has no 'left_hand' modality",
+                                                   "wilor -> right_hand: the layout has no 'right_hand' modality")
+    assert unusable_outputs(mixed, ("nlf",))[0] == "nlf -> body: 1 of its 3 joints are not SMPL-X joints ('spine01')"
+
+
+def face_estimates(frames: list[int], expression_dims: int = 100):
+    """Pixel3DMM's per-frame estimates as :func:`m3t.trackers.external.read_pixel3dmm` returns them."""
+    from m3t.trackers.external import FaceEstimates
+
+    n = len(frames)
+    rng = np.random.default_rng(4)
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    return FaceEstimates(np.array(frames), rng.normal(size=(n, expression_dims)), rng.uniform(size=(n, 2)), eye, eye,
+                         eye, np.zeros((n, 3)), np.zeros(300))
+
+
+def test_pixel3dmm_face_values_land_on_their_frames_of_a_flame_face_layout():
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import pixel3dmm_stream
+
+    face = face_estimates([0, 2, 7])
+    stream = pixel3dmm_stream(face, smplfx_layout(100), 5)  # frame 7 lies outside the 5-frame clip
+    assert stream.source == "pixel3dmm" and stream.values.shape == (5, 108)
+    np.testing.assert_array_equal(stream.confidence, [1, 0, 1, 0, 0])
+    np.testing.assert_array_equal(stream.values[2, :100], face.expression[1])
+    np.testing.assert_array_equal(stream.values[2, 100:102], face.eyelids[1])
+    np.testing.assert_allclose(stream.values[0, 102:], [1, 0, 0, 0, 1, 0])  # the identity jaw rotation in 6D
+    assert np.isnan(stream.values[1]).all()
+    arkit = ModalityLayout((Modality("face", "scalar", tuple(f"au{i}" for i in range(52))),), ("age",))
+    with pytest.raises(ValueError, match=r"^Pixel3DMM gives 108 face values; the layout's face has 52$"):
+        pixel3dmm_stream(face, arkit, 5)
+
+
+def test_fusion_interpolates_rotations_along_the_geodesic_and_scalars_linearly():
+    import roma
+
+    from m3t.body.protocol import Modality, ModalityLayout
+    from m3t.fitting.fusion import INTERPOLATED, REST, FusionConfig, TrackerStream, fuse, rot_to_flat6d
+
+    def about_z(degrees: float) -> np.ndarray:
+        return rot_to_flat6d(roma.rotvec_to_rotmat(torch.tensor([[0.0, 0.0, np.radians(degrees)]],
+                                                                 dtype=torch.float64)).numpy())
+
+    layout = ModalityLayout((Modality("jaw", "rotation6d", ("jaw",)), Modality("weights", "scalar", ("w0", "w1")),
+                             Modality("hand", "rotation6d", ("wrist",))), ("age",))
+    rest = {"jaw": about_z(0), "weights": np.array([0.5, 0.5]), "hand": about_z(10)}
+    jaw = np.full((5, 6), np.nan)
+    jaw[0], jaw[4] = about_z(0), about_z(80)
+    weights = np.zeros((5, 2))
+    weights[0], weights[4] = (0.0, 1.0), (0.8, 0.2)
+    covered = np.array([1.0, 0, 0, 0, 1.0])
+    fused = fuse(layout, {"jaw": [TrackerStream("pixel3dmm", jaw, covered)],
+                          "weights": [TrackerStream("pixel3dmm", weights, covered)]}, rest, 5, FusionConfig(max_gap=3))
+    for t in range(5):
+        np.testing.assert_allclose(fused.init["jaw"][t], about_z(20 * t), atol=1e-6, err_msg=str(t))
+    np.testing.assert_allclose(fused.init["weights"][2], (0.4, 0.6), atol=1e-6)
+    np.testing.assert_array_equal(fused.source["jaw"], [0, INTERPOLATED, INTERPOLATED, INTERPOLATED, 0])
+    np.testing.assert_array_equal(fused.source["hand"], [REST] * 5)  # no stream: the rest pose
+    np.testing.assert_allclose(fused.init["hand"], np.tile(about_z(10), (5, 1)), atol=1e-7)
+    assert fused.stream_names == {"jaw": ("pixel3dmm",), "weights": ("pixel3dmm",), "hand": ()}
+    assert fused.init["jaw"].dtype == np.float32 and fused.identity is None
+    with pytest.raises(ValueError, match=r"stream 'pixel3dmm' for 'jaw' has shape \(5, 5\) / \(5,\); expected "
+                                         r"\(5, 6\) / \(5,\)"):
+        fuse(layout, {"jaw": [TrackerStream("pixel3dmm", jaw[:, :5], covered)]}, rest, 5)
+
+
+def test_the_initialisation_record_says_which_tracker_gave_each_modalitys_frames():
+    from m3t.fitting.fusion import HELD, INTERPOLATED, REST, FusedInit, describe
+
+    source = {"body": np.array([0, 0, INTERPOLATED, HELD]), "face": np.full(4, REST),
+              "left_hand": np.array([1, 1, 0, REST])}
+    names = {"body": ("nlf:body",), "face": ("pixel3dmm",), "left_hand": ("wilor:left", "nlf:left_hand")}
+    fused = FusedInit({}, source, names, np.zeros(3), ("nlf", "pixel3dmm"), {"nlf": 2, "pixel3dmm": 0})
+    assert describe(fused) == {
+        "init_share_tracker_body": 0.5, "init_share_nlf_body": 0.5, "init_share_interpolated_body": 0.25,
+        "init_share_held_body": 0.25, "init_share_rest_body": 0.0,
+        "init_share_tracker_face": 0.0, "init_share_pixel3dmm_face": 0.0, "init_share_interpolated_face": 0.0,
+        "init_share_held_face": 0.0, "init_share_rest_face": 1.0,
+        "init_share_tracker_left_hand": 0.75, "init_share_wilor_left_hand": 0.25, "init_share_nlf_left_hand": 0.5,
+        "init_share_interpolated_left_hand": 0.0, "init_share_held_left_hand": 0.0, "init_share_rest_left_hand": 0.25,
+        "init_outside_frames_nlf": 2.0, "init_outside_frames_pixel3dmm": 0.0,
+        "init_source": "fused: nlf, wilor", "init_identity": "nlf, pixel3dmm"}
+    unused = describe(FusedInit({}, {"face": np.full(4, REST)}, {"face": ("pixel3dmm",)}, None))
+    assert unused["init_source"] == "rest pose: no external tracker estimate reached fusion.min_confidence"
+    assert unused["init_identity"] == "default"
+    nothing = describe(FusedInit({}, {"face": np.full(4, REST)}, {"face": ()}, None))
+    assert nothing["init_source"] == "rest pose: no external tracker outputs"
+
+
+def test_a_one_frame_fused_initialisation_shares_its_single_frame_fully():
+    from m3t.fitting.fusion import HELD, REST, FusedInit, describe
+
+    fused = FusedInit(init={"body": np.zeros((1, 3)), "face": np.zeros((1, 2))},
+                      source={"body": np.array([0]), "face": np.array([REST])},
+                      stream_names={"body": ("nlf",), "face": ("pixel3dmm",)}, identity=None, outside={"nlf": 2})
+    d = describe(fused)
+    assert (d["init_share_tracker_body"], d["init_share_nlf_body"], d["init_share_rest_body"]) == (1.0, 1.0, 0.0)
+    assert (d["init_share_rest_face"], d["init_share_tracker_face"], d["init_share_pixel3dmm_face"]) == (1.0, 0.0, 0.0)
+    assert d["init_outside_frames_nlf"] == 2.0 and d["init_source"] == "fused: nlf"
+    held = describe(FusedInit(init={"body": np.zeros((2, 3))}, source={"body": np.array([HELD, HELD])},
+                              stream_names={"body": ("nlf",)}, identity=None))
+    assert held["init_share_held_body"] == 1.0 and held["init_source"].startswith("rest pose: no external tracker est")
+
+
+def test_a_modality_without_tracker_streams_has_no_frames():
+    from m3t.fitting.config import FusionConfig
+    from m3t.fitting.fusion import fuse_modality
+
+    values, source = fuse_modality([], np.zeros(6), True, FusionConfig())
+    assert values.shape == (0, 6) and values.dtype == np.float32 and source.shape == (0,)
+
+
+def test_a_face_tracker_can_write_an_identity_with_a_single_flame_shape_coefficient():
+    from m3t.body.smplfx import smplfx_layout
+    from m3t.fitting.fusion import _target_problem
+    from m3t.fitting.imports import face_layout
+
+    assert _target_problem(face_layout(1), "pixel3dmm", "identity") is None
+    assert _target_problem(smplfx_layout(1), "nlf", "identity") is None
+    problem = _target_problem(face_layout(0), "pixel3dmm", "identity")
+    assert problem.startswith("identity ") and problem.endswith("has no FLAME shape 'flame_shape_<iii>'")
+    assert _target_problem(face_layout(1), "pixel3dmm", "face") is None
+    assert _target_problem(face_layout(1), "nlf", "body") == "the layout has no 'body' modality"
+
+
+def test_two_streams_of_one_tracker_add_up_in_the_initialisation_record():
+    from m3t.fitting.fusion import REST, FusedInit, describe
+
+    source = {"body": np.array([0, 1, 1, REST])}
+    fused = FusedInit({}, source, {"body": ("nlf:a", "nlf:b")}, None)
+    d = describe(fused)
+    assert d["init_share_nlf_body"] == 0.75 and d["init_share_tracker_body"] == 0.75
+    assert d["init_share_rest_body"] == 0.25 and d["init_source"] == "fused: nlf"

@@ -26,6 +26,9 @@ from m3t.fitting.imports import BODY_POSE_INDEX, IMPORTERS, face_layout, smplfx_
 from m3t.shards.io import read_shard
 from m3t.shards.schema import layout_to_json
 from m3t.trackers.dispatch import REFUSED, ClipRefused, track_real_clip
+import corpus_fixtures as cfx
+from m3t.corpora.clip import Clip
+from m3t.fitting.report import ClipOutcome
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -242,3 +245,150 @@ def test_fit_and_log_pictures_imports_without_a_fit_camera(tmp_path, tmp_path_fa
         assert pictures == ["quality-mead.png"]
     else:
         assert len(pictures) == 2 and pictures[0].endswith("_00001.png")  # the middle of 3 frames
+
+
+# ------------------------------------------------------------------------------------------ import conversion
+def import_kw():
+    from m3t.fitting.imports import ImportSettings
+
+    clip = Clip("c7", "mead", "train", "en", "M003", "", "", "M003/front/c7.hdf5", 30.0)
+    return clip, ImportSettings("smplfx", 100)
+
+
+def test_non_finite_frames_take_the_nearest_finite_frame_in_every_array():
+    from m3t.fitting.imports import import_clip
+
+    clip, settings = import_kw()
+    src = cfx.flame_arrays(frames=5)
+    src["jaw"][[0, 2, 4]] = np.nan  # frames 1 and 3 finite: frame 2 is a tie (the earlier wins)
+    src["exp"][0, 3] = np.inf
+    fitted, init = import_clip(clip, "flame_params", src, "key0", settings)
+    assert init == {"init_source": "imported: MEAD FLAME parameters, no tracking or fitting"}
+    assert fitted.metrics["src_nonfinite_frame_frac"] == pytest.approx(0.6)
+    face = fitted.params["face"]
+    for t, source in enumerate((1, 1, 1, 3, 3)):
+        np.testing.assert_array_equal(face[t, :50], src["exp"][source], err_msg=str(t))
+    assert fitted.metrics["src_jaw_min"] == float(np.nanmin(src["jaw"][[1, 3]]))
+    assert fitted.key == "key0" and fitted.camera == {} and fitted.body_model == "smplfx"
+
+
+def test_a_source_without_usable_frames_is_refused_naming_the_clip():
+    from m3t.fitting.imports import import_clip
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, settings = import_kw()
+    with pytest.raises(ClipRefused, match=r"clip c7: every one of its 3 frames holds NaN or inf") as info:
+        import_clip(clip, "keypoints", {"sign": np.full((3, 4), np.nan, np.float32)}, "k", settings)
+    assert info.value.group == "no finite frame"
+    with pytest.raises(ClipRefused, match=r"clip c7: source arrays have \[2, 3\] frames") as info:
+        import_clip(clip, "flame_params", {**cfx.flame_arrays(3), "jaw": np.zeros((2, 3))}, "k", settings)
+    assert info.value.group == "no frames"
+    with pytest.raises(ClipRefused, match=r"\[0\] frames") as info:
+        import_clip(clip, "keypoints", {"sign": np.zeros((0, 4), np.float32)}, "k", settings)
+    assert info.value.group == "no frames"
+
+
+@pytest.mark.parametrize("clip_id", ["", ".", "..", "a/b", "a\\b", "a\0b"])
+def test_an_import_refuses_a_clip_id_that_would_name_a_file_outside_the_cache(clip_id):
+    from m3t.fitting.imports import check_importable
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, settings = import_kw()
+    clip = dataclasses.replace(clip, id=clip_id)
+    with pytest.raises(ClipRefused) as info:
+        check_importable(clip, "keypoints", settings)
+    assert info.value.group == "unsafe clip id"
+    assert str(info.value).startswith(f"clip id {clip_id!r} is empty, '.' or '..', or holds a path separator; ")
+    assert str(info.value).endswith("rename the clip in M003/front/c7.hdf5")
+
+
+def test_smplx_and_flame_imports_need_smplfx_and_slt_arrays_any_body_model():
+    from m3t.fitting.imports import ImportSettings, check_importable
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, smplfx = import_kw()
+    anny = ImportSettings("anny", 100)
+    for kind, what in (("smplx_params", "SOKE SMPL-X parameters"), ("flame_params", "MEAD FLAME parameters")):
+        check_importable(clip, kind, smplfx)
+        with pytest.raises(ClipRefused) as info:
+            check_importable(clip, kind, anny)
+        assert info.value.group == "needs body.model: smplfx"
+        assert str(info.value) == (f"clip c7: {what} are imported into SMPL-FX streams, which needs body.model: "
+                                   "smplfx (it is 'anny')")
+    check_importable(clip, "keypoints", anny)
+
+
+def fitted(batch) -> list[ClipOutcome]:
+    return [ClipOutcome(c.id, c.split, "fitted", frames=3, seconds=0.5) for c in batch]
+
+
+# ------------------------------------------------------------------------------------------ imports and reports
+def test_a_flame_source_with_more_expressions_than_flame_2020_is_refused_naming_the_clip():
+    from m3t.fitting.imports import import_clip
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip, settings = import_kw()
+    with pytest.raises(ClipRefused) as info:
+        import_clip(clip, "flame_params", cfx.flame_arrays(frames=3, exp=101), "k", settings)
+    assert info.value.group == "too many expression dims"
+    assert str(info.value) == "clip c7: 'exp' has 101 columns; FLAME 2020 has 100 expression coefficients"
+
+
+def test_an_imported_face_row_is_float32_and_reports_the_identitys_drift_over_frames():
+    from m3t.fitting.imports import import_clip
+
+    clip, settings = import_kw()
+    src = cfx.flame_arrays(frames=4)
+    src["shape"] = np.tile(np.linspace(-1, 1, 100, dtype=np.float32), (4, 1))  # one signer: the same every frame
+    src["eyelids"] = np.full((4, 2), 0.25, np.float32)
+    fitted, _ = import_clip(clip, "flame_params", src, "k", settings)
+    assert fitted.metrics["src_shape_frame_std"] == 0.0
+    assert fitted.params["face"].dtype == np.float32 and fitted.identity.dtype == np.float32
+    np.testing.assert_array_equal(fitted.params["face"][:, 100:102], 0.25)
+    np.testing.assert_allclose(fitted.identity[10:], src["shape"][0], atol=1e-7)
+    assert not fitted.identity[:10].any()  # no SMPL-X betas in a FLAME source
+    src["shape"][:, 0] = (0.0, 1.0, 0.0, 1.0)  # one coefficient drifts: std 0.5 over frames, mean over 100 dims
+    drifting, _ = import_clip(clip, "flame_params", src, "k", settings)
+    assert drifting.metrics["src_shape_frame_std"] == pytest.approx(0.005)
+
+
+def test_an_slt_clip_without_a_recorded_width_is_refused_beside_the_common_width():
+    from m3t.fitting.imports import ImportSettings, plan_import
+
+    clips = [Clip(cid, "slt", "train", "de", "s1", "", "", f"train.pkl#{i}", 25.0, extra=extra)
+             for i, (cid, extra) in enumerate([("a", (("dims", "6"),)), ("b", (("dims", "6"),)), ("c", ()),
+                                              ("d", (("dims", "9"),))])]
+    layout, keep, refused = plan_import("keypoints", ImportSettings("smplfx", 100), clips)
+    assert [c.id for c in keep] == ["a", "b"] and sum(layout.dims.values()) == 6
+    assert [(o.clip_id, o.status, o.group, o.file) for o in refused] == [
+        ("c", "quarantined", "other sign width", "train.pkl#2"),
+        ("d", "quarantined", "other sign width", "train.pkl#3")]
+    assert refused[0].reason == ("sign has None values per frame; 2 of the corpus' clips have 6 and a shard holds "
+                                 "one layout")
+    assert refused[1].reason.startswith("sign has 9 values per frame; 2 of")
+
+
+def test_an_import_whose_adapter_cannot_read_sources_is_refused_naming_the_clip_and_corpus(tmp_path):
+    from m3t.corpora.how2sign import How2SignCorpus
+    from m3t.fitting.imports import read_source
+    from m3t.trackers.dispatch import ClipRefused
+
+    clip = Clip("c7", "how2sign", "train", "ASL", "s0", "", "", "clips/c7", 24.0)
+    with pytest.raises(ClipRefused) as info:
+        read_source(clip, "smplx_params", How2SignCorpus(tmp_path))
+    assert info.value.group == "no source reader"
+    assert str(info.value) == ("clip c7: corpus 'how2sign' lists smplx_params clips but its adapter cannot read "
+                               "them (no source() method)")
+
+
+def test_an_imported_keypoint_clip_has_no_body_model_and_no_identity():
+    from m3t.fitting.imports import NO_IDENTITY, import_clip
+
+    clip, settings = import_kw()
+    sign = np.arange(12, dtype=np.float32).reshape(3, 4)
+    fitted, init = import_clip(clip, "keypoints", {"sign": sign}, "k", settings)
+    assert fitted.body_model == "none" and fitted.key == "k" and fitted.camera == {}
+    np.testing.assert_array_equal(fitted.params["sign"], sign)
+    assert list(fitted.params) == ["sign"]
+    np.testing.assert_array_equal(fitted.identity, np.zeros(len(NO_IDENTITY), np.float32))
+    assert init["init_source"].startswith("imported: ") and init["init_source"].endswith(", no tracking or fitting")

@@ -164,3 +164,32 @@ def test_uniform_weights_are_the_unweighted_problem_and_bad_weights_name_the_fix
         similarity_transform(x, y, weights=torch.ones(4, 8))
     with pytest.raises(ValueError, match="non-negative"):
         similarity_transform(x, y, weights=torch.zeros(4, 9))
+
+
+def test_region_keypoints_pose_exactly_the_regions_vertices_from_a_well_formed_correspondence(body):
+    from m3t.metrics.vertices import region_keypoints, region_vertices
+
+    class Recording:
+        """The body model, recording the correspondences it is handed."""
+
+        def __init__(self, inner):
+            self.inner, self.seen = inner, []
+
+        def keypoint_set(self, corr):
+            self.seen.append(corr)
+            return self.inner.keypoint_set(corr)
+
+    region = np.array([12, 3000, 7, 9000])
+    recording = Recording(body)
+    keypoints = region_keypoints(recording, region.tolist())
+    (corr,) = recording.seen
+    assert len(corr.names) == len(corr.kind) == len(corr.index) == 4
+    assert len(set(corr.names)) == 4 and all(isinstance(n, str) for n in corr.names)
+    assert corr.valid.all() and (corr.kind == 0).all() and np.array_equal(corr.index, region)
+    params = body.rest_params(3)
+    params["body"] = params["body"] + 0.1 * torch.randn(3, params["body"].shape[1], generator=torch.Generator().manual_seed(0))
+    identity = body.default_identity()
+    dense = body.forward(params, identity).vertices[:, region]
+    got = region_vertices(body, params, identity, keypoints, chunk=2)  # chunks of frames give the same result
+    assert got.shape == (3, 4, 3)
+    assert torch.allclose(got, dense, atol=1e-5)

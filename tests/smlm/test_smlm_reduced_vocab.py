@@ -187,3 +187,177 @@ def test_paper_preset_smlm_has_396m_parameters():
     assert abs(total - text_head - 396e6) / 396e6 > 0.05, "with a tied head 396M would need ~40k text ids"
     full, _ = count_on_meta(250_027)  # the whole mbart-large-cc25 vocabulary: what the preset built before
     assert full > 850e6
+
+
+def test_keeping_embedding_rows_gathers_them_and_leaves_the_pad_row_untrained():
+    """:func:`m3t.smlm.model.keep_embedding_rows` on an in-memory mBART (``MBartModel``: its scaled word
+    embedding shared by encoder and decoder, pad id 1 as in mbart-large-cc25)."""
+    from transformers import MBartConfig, MBartModel
+
+    from m3t.smlm.model import keep_embedding_rows
+
+    torch.manual_seed(0)
+    config = MBartConfig(vocab_size=20, d_model=8, encoder_layers=1, decoder_layers=1, encoder_attention_heads=2,
+                         decoder_attention_heads=2, encoder_ffn_dim=16, decoder_ffn_dim=16, max_position_embeddings=32,
+                         scale_embedding=True, pad_token_id=1)
+    backbone = MBartModel(config)
+    old = backbone.get_input_embeddings()
+    before = old.weight.detach().clone()
+    rows = (0, 1, 2, 3, 7, 11)
+    with pytest.raises(ValueError, match=r"pretrained id 20 but the checkpoint in models/mbart has 20 embedding rows: "
+                                         r"smlm\.text_model_path and smlm\.pretrained_path must be the same mBART"):
+        keep_embedding_rows(backbone, rows + (20,), 1, "models/mbart")
+    assert backbone.get_input_embeddings() is old, "a refused reduction leaves the model as it was"
+
+    keep_embedding_rows(backbone, rows, 1, "models/mbart")
+    emb = backbone.get_input_embeddings()
+    assert type(emb) is type(old) and emb.num_embeddings == len(rows) and emb.embedding_dim == 8
+    assert emb.embed_scale == old.embed_scale == pytest.approx(8 ** 0.5)
+    assert torch.equal(emb.weight, before[list(rows)])
+    assert backbone.encoder.embed_tokens is emb and backbone.decoder.embed_tokens is emb
+    assert backbone.config.vocab_size == len(rows) and backbone.config.pad_token_id == 1
+    assert emb.padding_idx == 1
+    ids = torch.tensor([[0, 4, 5, 2, 1, 1]])  # two pads at the end
+    out = backbone(input_ids=ids, attention_mask=(ids != 1).long(), decoder_input_ids=ids[:, :4])
+    out.last_hidden_state.sum().backward()
+    grad = emb.weight.grad
+    assert torch.count_nonzero(grad[1]) == 0, "the pad row gets no gradient: it stays the pretrained pad"
+    assert all(torch.count_nonzero(grad[i]) > 0 for i in (0, 2, 4, 5))
+
+
+def test_training_the_text_tokenizer_keeps_sentencepieces_log_off_stderr(capfd):
+    import sentencepiece as spm
+
+    from m3t.smlm.vocab import SentencePieceText, VocabularyError
+
+    spm.set_min_log_level(0)  # the library's default: an earlier training in this process may have raised it
+    capfd.readouterr()
+    text = SentencePieceText.train(["the friend buys a red car", "  ", "", "my father drinks water"], 40)
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == "", "the stage log stays readable: no trainer chatter"
+    assert (text.pad_id, text.bos_id, text.eos_id, text.unk_id) == (0, 1, 2, 3)
+    assert 4 < text.size <= 40  # vocab_size is an upper bound on a small corpus
+    ids = text.encode("my father drinks water")
+    assert text.decode([text.bos_id, *ids, text.eos_id, text.pad_id]) == "my father drinks water"
+    with pytest.raises(VocabularyError, match="the corpus has no non-empty text"):
+        SentencePieceText.train(["", "   "], 40)
+
+
+@pytest.fixture(scope="module")
+def mbart_tokenizer_dir(tmp_path_factory):
+    """The tokenizer files of a facebook/mbart-large-cc25 folder, tiny: a SentencePiece BPE
+    ``sentencepiece.bpe.model`` and a ``tokenizer_config.json`` naming ``MBartTokenizer`` (``transformers`` then
+    gives mBART's ids: ``<s>`` 0, ``<pad>`` 1, ``</s>`` 2, ``<unk>`` 3, the pieces shifted by one, then the 25
+    language codes ``ar_AR`` .. ``zh_CN`` and ``<mask>``), as the stand-in of test_smlm_reduced_vocab.py, without
+    the model weights."""
+    import io
+
+    import sentencepiece as spm
+
+    folder = tmp_path_factory.mktemp("mbart-tokenizer")
+    texts = ["the friend buys a red car today", "morgen regnet es im norden", "zwölf grad in bayern",
+             "cars and books", "am tag scheint die sonne"]
+    buffer = io.BytesIO()
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(texts * 4), model_writer=buffer, vocab_size=60,
+                                   model_type="bpe", hard_vocab_limit=False, minloglevel=2, num_threads=1)
+    (folder / "sentencepiece.bpe.model").write_bytes(buffer.getvalue())
+    (folder / "tokenizer_config.json").write_text(json.dumps({"tokenizer_class": "MBartTokenizer"}))
+    return folder
+
+
+def test_pretrained_mbart_text_decodes_without_its_special_tokens(mbart_tokenizer_dir):
+    from m3t.smlm.vocab import PretrainedMBartText
+
+    text = PretrainedMBartText(mbart_tokenizer_dir)
+    assert (text.bos_id, text.pad_id, text.eos_id, text.unk_id) == (0, 1, 2, 3)
+    assert text.path == str(mbart_tokenizer_dir) and text.model_proto == b""
+    ids = text.encode("the friend buys a red car")
+    assert ids and min(ids) > 3, "encoded without <s> / </s>"
+    assert text.piece(text.eos_id) == "</s>" and text.piece(text.pad_id) == "<pad>"
+    generated = [text.bos_id, *ids, text.eos_id, text.pad_id, text.pad_id]  # as a padded generation comes back
+    assert text.decode(generated) == "the friend buys a red car"
+    assert text.decode(np.array(generated, dtype=np.int64)) == "the friend buys a red car"
+
+
+def test_reduced_text_refuses_ids_outside_the_tokenizer_and_names_it(mbart_tokenizer_dir):
+    from m3t.smlm.vocab import PretrainedMBartText, ReducedText, VocabularyError
+
+    base = PretrainedMBartText(mbart_tokenizer_dir)
+    last = base.size - 1
+
+    def message(kept):
+        with pytest.raises(VocabularyError) as info:
+            ReducedText(base, kept)
+        return str(info.value)
+
+    for kept, shown in (([-1, 0, 1, 2, 3], "5 ids from (-1,) to (3,)"),  # a negative id
+                        ([0, 1, 2, 3, base.size], f"5 ids from (0,) to ({base.size},)"),  # one past the end
+                        ([0, 2, 1, 3], "4 ids from (0,) to (3,)"),  # not ascending
+                        ([0, 1, 2, 2, 3], "5 ids from (0,) to (3,)"),  # a repeat
+                        ([], "0 ids from () to ()")):
+        assert message(kept) == (
+            f"the reduced text vocabulary must list ascending, distinct ids of the tokenizer in {mbart_tokenizer_dir} "
+            f"(0 .. {last}); got {shown}: the checkpoint was made with another mBART tokenizer"), kept
+    assert message([0, 2, 3, 9]) == "the reduced text vocabulary lacks the special token(s) ['pad']"
+    assert message([1, 3, 9]) == "the reduced text vocabulary lacks the special token(s) ['bos', 'eos']"
+
+    reduced = ReducedText.from_texts(base, ["the friend buys a red car", "", "  "])
+    assert reduced.kept[:4] == (0, 1, 2, 3) and reduced.kept[-1] <= last
+    assert (reduced.bos_id, reduced.pad_id, reduced.eos_id, reduced.unk_id) == (0, 1, 2, 3)
+    ids = reduced.encode("the friend buys a red car")
+    assert max(ids) < reduced.size and reduced.decode(ids) == "the friend buys a red car"
+    with pytest.raises(VocabularyError, match="the training corpus has no non-empty text"):
+        ReducedText.from_texts(base, ["", " "])
+
+
+def test_reduced_text_decodes_every_id_in_range_through_the_mapping_and_drops_the_others():
+    """Reduced id ``i`` is pretrained id ``kept[i]``, the first one included; ids outside the reduced
+    vocabulary (a generation's stray values) are dropped. The base here is a tokenizer whose first ids are
+    ordinary pieces (its specials at 4 .. 7), so that a lost id 0 shows."""
+    from m3t.smlm.vocab import ReducedText
+
+    class Pieces:
+        path, size, model_proto = "pieces", 10, b""
+        pad_id, bos_id, eos_id, unk_id = 4, 5, 6, 7
+
+        def decode(self, ids):
+            return " ".join(f"p{i}" for i in ids)
+
+        def piece(self, i):
+            return f"p{i}"
+
+    reduced = ReducedText(Pieces(), [0, 2, 4, 5, 6, 7, 9])
+    assert reduced.size == 7 and (reduced.pad_id, reduced.bos_id, reduced.eos_id, reduced.unk_id) == (2, 3, 4, 5)
+    assert reduced.decode([0, 1, 6]) == "p0 p2 p9"
+    assert reduced.decode([0, 7, -1, 1, 99, 6]) == "p0 p2 p9"
+    assert reduced.decode(np.array([6, 0])) == "p9 p0"
+    assert [reduced.piece(i) for i in (0, 1, 6)] == ["p0", "p2", "p9"]
+
+
+def test_a_reduced_vocabulary_over_a_tokenizer_without_a_path_still_explains_the_refusal():
+    from m3t.smlm.vocab import ReducedText, VocabularyError
+
+    class Loaded:  # a tokenizer object that does not know where it was loaded from
+        size, model_proto = 10, b""
+        pad_id, bos_id, eos_id, unk_id = 0, 1, 2, 3
+
+    with pytest.raises(VocabularyError) as info:
+        ReducedText(Loaded(), [0, 1, 2, 3, 12])
+    assert str(info.value) == ("the reduced text vocabulary must list ascending, distinct ids of the tokenizer in ? "
+                               "(0 .. 9); got 5 ids from (0,) to (12,): the checkpoint was made with another mBART "
+                               "tokenizer")
+
+
+def test_a_sentencepiece_model_without_a_pad_id_is_refused():
+    import io
+
+    import sentencepiece as spm
+
+    from m3t.smlm.vocab import SentencePieceText, VocabularyError
+
+    buffer = io.BytesIO()
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(["the friend buys a red car", "my father drinks water"]),
+                                   model_writer=buffer, vocab_size=30, model_type="unigram", hard_vocab_limit=False,
+                                   minloglevel=2, num_threads=1)  # SentencePiece's default: no pad id (-1)
+    with pytest.raises(VocabularyError, match="model must define pad, bos, eos and unk ids"):
+        SentencePieceText(buffer.getvalue())

@@ -28,6 +28,9 @@ from m3t.tokenizers.vae import MotionTokenizer
 from float_order import assert_close_counts, assert_close_json, assert_close_numbers, assert_close_weights
 from precision_steps import bf16_and_fp32_steps
 from builders import SPLITS, TINY_MODEL
+import re
+from builders import TINY_VAE, tiny_train_cfg
+from typing import ClassVar
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -272,3 +275,194 @@ def test_run_key_changes_with_the_training_settings_not_with_where_or_on_what_de
     for change in ({"lr": cfg.lr * 2}, {"epochs": cfg.epochs + 1}, {"batch_size": cfg.batch_size * 2}):
         assert key != run_key("body", model, dataclasses.replace(cfg, **change), "v1"), change
     assert key != run_key("body", model, cfg, "v2") != run_key("hand", model, cfg, "v1")
+
+
+def tiny_face_clips(count: int) -> list[np.ndarray]:
+    """``count`` random 16-frame clips of ``TINY_VAE``'s 3-dim stream, seed 0."""
+    rng = np.random.default_rng(0)
+    return [rng.normal(size=(16, 3)).astype(np.float32) for _ in range(count)]
+
+
+def test_tokenizer_training_shows_its_epoch_bar_only_on_the_main_rank_and_when_asked(tmp_path, capfd):
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(3)
+    model_cfg = TINY_VAE
+
+    def train(name, **kwargs):
+        cfg = tiny_train_cfg(tmp_path / name, 2, 4)
+        capfd.readouterr()
+        result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", **kwargs)
+        return result, capfd.readouterr().err
+
+    result, err = train("shown")
+    assert len(result.history) == 2
+    assert re.search(r"(^|\r)tokenizer:face: +100%.* 2/2 ", err), "the bar names the group and counts epochs"
+    _, err = train("quiet", progress=False)
+    assert "tokenizer:face" not in err
+    _, err = train("rank1", dist_ctx=DistributedContext(rank=1))  # trains, keeps no history: rank 0 records
+    assert "tokenizer:face" not in err, "only rank 0 draws the bar"
+
+
+def test_tokenizer_training_refuses_a_window_the_downsampling_does_not_divide(tmp_path):
+    from m3t.tokenizers.config import TokenizerTrainConfig
+    from m3t.tokenizers.train import train_tokenizer
+
+    model_cfg = TINY_VAE
+    cfg = TokenizerTrainConfig(cache_dir=str(tmp_path), window=model_cfg.downsample * 3 + 1, device="cpu")
+    message = (f"tokenizer_train.window ({cfg.window}) must be a multiple of the downsampling factor "
+               f"{model_cfg.downsample}")
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        train_tokenizer("face", model_cfg, cfg, [np.zeros((16, 3), dtype=np.float32)], None, "v")
+    assert not any(tmp_path.iterdir())  # refused before anything is written
+
+
+def test_only_the_main_rank_records_and_saves_a_tokenizer_run(tmp_path):
+    from m3t.runtime import DistributedContext
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(3)
+    model_cfg = TINY_VAE
+    cfg = tiny_train_cfg(tmp_path / "rank1", 1, 4)
+    result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", dist_ctx=DistributedContext(rank=1),
+                             progress=False)
+    assert result.history == [] and not result.best
+    assert not result.best_path.exists() and not result.last_path.exists()
+    cfg = tiny_train_cfg(tmp_path / "rank0", 1, 4)
+    result = train_tokenizer("face", model_cfg, cfg, seqs, None, "v", progress=False)
+    assert [sorted(k for k in r if k.startswith("train_recon")) for r in result.history] == [["train_recon_mse"]]
+    assert result.best_path.exists() and result.last_path.exists()
+
+
+def test_a_tokenizer_with_a_probe_keeps_the_epoch_of_lowest_validation_error(tmp_path):
+    from m3t.tokenizers.train import train_tokenizer
+
+    class _Probe:  # stands in for the reconstruction probe: a fixed vertex error per evaluation
+        def __init__(self):
+            self.values = iter([1.0, 9.0, 9.0])
+
+        def measure(self, model):
+            return {"vpe_mm": next(self.values)}
+
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(3)
+    model_cfg = TINY_VAE
+    cfg = tiny_train_cfg(tmp_path, 3, 4, eval_every=1)
+    result = train_tokenizer("face", model_cfg, cfg, seqs, _Probe(), "v", progress=False)
+    assert [r["val_vpe_mm"] for r in result.history] == [1.0, 9.0, 9.0]
+    assert result.best["epoch"] == 1 and result.best["val_vpe_mm"] == 1.0
+    # the training loss went down after the first epoch, yet the validation error decides
+    assert min(r["train_recon_mse"] for r in result.history) < result.history[0]["train_recon_mse"]
+
+
+def test_tokenizer_epoch_record_is_the_mean_of_its_steps_statistics(tmp_path, monkeypatch):
+    import m3t.tokenizers.train as train_module
+
+    seen: list[dict[str, float]] = []
+    real_step = train_module.train_step
+
+    def recording_step(*args, **kwargs):
+        stats = real_step(*args, **kwargs)
+        seen.append(stats)
+        return stats
+
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(3)
+    cfg = tiny_train_cfg(tmp_path, 2, 2, windows_per_clip=2)
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
+                                          seqs, None, "v", progress=False)
+    steps = len(seen) // 2
+    assert steps >= 2 and len(seen) == 2 * steps and len(result.history) == 2
+    for epoch, record in enumerate(result.history):
+        window = seen[epoch * steps:(epoch + 1) * steps]
+        for key in ("loss", "recon_mse", "perplexity"):
+            assert record[f"train_{key}"] == pytest.approx(sum(s[key] for s in window) / steps, rel=1e-9), key
+
+
+class _rest_RecordingDDP(torch.nn.Module):
+    """Stands in for DistributedDataParallel (which needs a process group): wraps the model like it does."""
+
+    wrapped: ClassVar[list] = []
+
+    def __init__(self, module):
+        super().__init__()
+        self.module = module
+        _rest_RecordingDDP.wrapped.append(module)
+
+    def forward(self, *args, **kwargs):
+        return self.module(*args, **kwargs)
+
+
+@pytest.mark.parametrize("world_size", [1, 2])
+def test_tokenizer_training_wraps_the_model_for_data_parallel_only_across_ranks(tmp_path, monkeypatch, world_size):
+    import m3t.tokenizers.train as train_module
+    from m3t.runtime import DistributedContext
+
+    nets = []
+    real_step = train_module.train_step
+
+    def recording_step(net, *args, **kwargs):
+        nets.append(net)
+        return real_step(net, *args, **kwargs)
+
+    _rest_RecordingDDP.wrapped = []
+    monkeypatch.setattr(train_module, "DistributedDataParallel", _rest_RecordingDDP)
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(4)
+    cfg = tiny_train_cfg(tmp_path, 1, 2)
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
+                                          seqs, None, "v", dist_ctx=DistributedContext(0, world_size), progress=False)
+    assert nets, "at least one training step"
+    if world_size == 1:
+        assert _rest_RecordingDDP.wrapped == [] and all(net is result.model for net in nets)
+    else:  # every step goes through the one data-parallel wrapper of the returned model
+        assert _rest_RecordingDDP.wrapped == [result.model]
+        assert all(isinstance(net, _rest_RecordingDDP) and net.module is result.model for net in nets)
+
+
+def test_tokenizer_checkpoints_count_every_optimiser_step_of_every_epoch(tmp_path):
+    from m3t.tokenizers.checkpoint import load_tokenizer
+    from m3t.tokenizers.train import train_tokenizer
+
+    torch.set_num_threads(1)
+    seqs = tiny_face_clips(5)
+    cfg = tiny_train_cfg(tmp_path, 2, 2)
+    result = train_tokenizer("face", TINY_VAE, cfg, seqs, None,
+                             "v", progress=False)
+    steps = len(WindowSampler(seqs, 8, 2, 1))
+    assert steps == 3  # 5 crops in batches of 2
+    for path in (result.last_path, result.best_path):
+        loaded = load_tokenizer(path)
+        assert (loaded.epoch, loaded.step) == (2, 2 * steps), path.name
+
+
+def test_tokenizer_training_draws_its_windows_from_the_configured_seed_and_its_ranks_share(tmp_path, monkeypatch):
+    import m3t.tokenizers.train as train_module
+    from m3t.runtime import DistributedContext
+
+    samplers = []
+
+    class RecordingSampler(WindowSampler):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            samplers.append(self)
+
+    _rest_RecordingDDP.wrapped = []
+    monkeypatch.setattr(train_module, "DistributedDataParallel", _rest_RecordingDDP)
+    monkeypatch.setattr(train_module, "WindowSampler", RecordingSampler)
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    seqs = [rng.normal(size=(16 + 3 * i, 3)).astype(np.float32) for i in range(4)]
+    cfg = tiny_train_cfg(tmp_path, 1, 2, 2, seed=7, device="cuda")  # across ranks: the group's device
+    result = train_module.train_tokenizer("face", TINY_VAE, cfg,
+                                          seqs, None, "v", dist_ctx=DistributedContext(1, 2), progress=False)
+    assert next(result.model.parameters()).device == torch.device("cpu")
+    (sampler,) = samplers
+    assert (sampler.seed, sampler.rank, sampler.world_size) == (7, 1, 2)
+    assert (sampler.window, sampler.batch_size, sampler.per_sequence) == (8, 2, 2)
+    assert all(a is b for a, b in zip(sampler.sequences, seqs)) and len(sampler.sequences) == 4

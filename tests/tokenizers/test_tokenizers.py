@@ -25,6 +25,10 @@ from m3t.tokenizers.config import TokenizerConfig, VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters
 from m3t.training import lr_factor
 from m3t.tokenizers.vq import EMAVQ, PlainVQ
+import re
+from builders import LAYOUT, NO_FACE, tiny_tokenizers
+from m3t.body.protocol import Modality, ModalityLayout
+from m3t.tokenizers.data import STREAMS
 
 PAPER_LEVELS = [(5, 5, 4), (6, 6, 5), (6, 6, 6)]
 
@@ -301,3 +305,258 @@ def test_ablation_sweep_and_table():
               for seed, util in ((0, 60.0), (1, 70.0), (2, 80.0))]
     row = ablation_table(seeded).splitlines()[2]
     assert row.startswith("| VQ | 16 | 64 | 3 |") and "70.0 +- 8.2" in row
+
+
+@pytest.mark.parametrize("items, world_size", [(5, 2), (7, 3), (6, 3), (1, 2), (10, 4)])
+def test_window_sampler_gives_every_rank_equal_shares_that_cover_every_crop(items, world_size):
+    # one window-long sequence per item, filled with its index: each crop says which item it is
+    seqs = [np.full((4, 1), float(i), np.float32) for i in range(items)]
+    per_rank = -(-items // world_size)
+    seen = []
+    for rank in range(world_size):
+        sampler = WindowSampler(seqs, window=4, batch_size=2, per_sequence=1, seed=5, rank=rank, world_size=world_size)
+        batches = list(sampler.epoch(0))
+        assert len(batches) == len(sampler) == -(-per_rank // 2)
+        crops = [int(x[0, 0, 0]) for xs, _ in batches for x in xs.split(1)]
+        assert len(crops) == per_rank, f"rank {rank} of {world_size}"
+        assert all(mask.all() for _, mask in batches)
+        seen += crops
+    assert set(seen) == set(range(items))
+    # the shares are padded to equal length by wrapping round the epoch's order: no item is repeated more
+    # often than that needs (with fewer items than ranks, each rank still gets one)
+    assert max(seen.count(i) for i in range(items)) == -(-per_rank * world_size // items)
+    single = WindowSampler(seqs, window=4, batch_size=items, per_sequence=1, seed=5)
+    (xs, _), = list(single.epoch(0))
+    assert sorted(int(v) for v in xs[:, 0, 0]) == list(range(items))
+
+
+def test_set_normalisation_floors_only_near_constant_dims():
+    model = MotionTokenizer(VAEConfig(input_dim=4, levels=(5, 5, 4), width=8, depth=1))
+    model.set_normalisation(torch.tensor([1.0, -2.0, 0.5, 0.0]), torch.tensor([0.0, 0.004, 0.5, 3.0]))
+    assert torch.allclose(model.std, torch.tensor([0.01, 0.01, 0.5, 3.0]))
+    assert torch.equal(model.mean, torch.tensor([1.0, -2.0, 0.5, 0.0]))
+    model.set_normalisation(torch.zeros(4), torch.tensor([0.0, 0.2, 0.5, 3.0]), floor=0.3)
+    assert torch.allclose(model.std, torch.tensor([0.3, 0.3, 0.5, 3.0]))
+    # the statistics map the decoder's standardised output back to parameters
+    codes = torch.zeros(1, 2, 3)
+    raw = model.decoder(codes.transpose(1, 2)).transpose(1, 2)
+    assert torch.allclose(model.decode_codes(codes), raw * model.std)
+
+
+@pytest.mark.parametrize("depth, growth, stages", [(3, 3, 2), (2, 2, 1), (1, 3, 3)])
+def test_decoder_mirrors_the_encoder_with_reversed_dilations(depth, growth, stages):
+    cfg = VAEConfig(input_dim=5, levels=(5, 5, 4), width=8, depth=depth, dilation_growth=growth, down_stages=stages)
+    model = MotionTokenizer(cfg)
+
+    def dilations(stack):
+        return [[block.conv1.dilation[0] for block in m] for m in stack if isinstance(m, torch.nn.Sequential)]
+
+    forward = [growth**i for i in range(depth)]
+    assert dilations(model.encoder) == [forward] * stages
+    assert dilations(model.decoder) == [forward[::-1]] * stages
+    ups = [m for m in model.decoder if isinstance(m, torch.nn.Upsample)]
+    assert len(ups) == stages and all(u.scale_factor == 2 and u.mode == "nearest" for u in ups)
+    assert model.decode(torch.zeros(2, 3, dtype=torch.long)).shape == (2, 3 * 2**stages, 5)
+
+
+def test_every_stream_belongs_to_one_group_and_an_unknown_stream_is_named():
+    from m3t.tokenizers.data import group_of
+
+    assert {s.name: group_of(s.name) for s in STREAMS} == {
+        "body": "body", "left_hand": "hand", "right_hand": "hand", "face": "face"}
+    with pytest.raises(KeyError) as info:
+        group_of("torso")
+    assert info.value.args[0] == ("no tokenizer group serves stream 'torso'; streams: "
+                                  "['body', 'left_hand', 'right_hand', 'face']")
+
+
+def test_check_layout_gives_the_groups_dim_or_says_what_the_body_model_lacks():
+    from m3t.tokenizers.data import check_layout
+
+    assert {g: check_layout(LAYOUT, g) for g in GROUPS} == {"body": 12, "hand": 6, "face": 3}
+
+    def message(layout, group):
+        with pytest.raises(ValueError) as info:
+            check_layout(layout, group)
+        return str(info.value)
+
+    assert message(NO_FACE, "face") == ("tokenizer group 'face' needs modality 'face'; the body model's layout has "
+                                        "['body', 'left_hand', 'right_hand']")
+    assert message(LAYOUT, "torso") == "tokenizer group 'torso' unknown; allowed: body, hand, face"
+    body, _, right, face = LAYOUT.modalities
+    two_bone_left = Modality("left_hand", "rotation6d", ("wrist.L", "thumb.L"), mirror_of="right_hand")
+    assert message(ModalityLayout((body, two_bone_left, right, face), ()), "hand") == (
+        "streams of group 'hand' have different dims [6, 12]")
+    scalar_left = Modality("left_hand", "scalar", ("a", "b", "c", "d", "e", "f"))
+    assert message(ModalityLayout((body, scalar_left, right, face), ()), "hand") == (
+        "modality 'left_hand' must be rotation6d to be mirrored")
+
+
+def test_random_crops_are_whole_start_frames_inside_each_sequence_and_replayable():
+    lengths = (5, 16, 17, 40)
+    seqs = [np.zeros((n, 2), np.float32) for n in lengths]
+    sampler = WindowSampler(seqs, window=8, batch_size=3, per_sequence=3, seed=11)
+    items, starts = sampler.crops(0)
+    assert items.shape == starts.shape == (3 * len(seqs),)
+    assert np.issubdtype(starts.dtype, np.integer), "start frames index the sequence"
+    assert sorted(items.tolist()) == sorted(list(range(len(seqs))) * 3)
+    for item, start in zip(items, starts):
+        assert 0 <= start <= max(lengths[item] - 8, 0), (item, start)
+        assert len(seqs[item][start: start + 8]) == min(8, lengths[item])
+    again_items, again_starts = sampler.crops(0)
+    assert np.array_equal(again_items, items) and np.array_equal(again_starts, starts), "an epoch replays exactly"
+    other = sampler.crops(1)
+    assert not (np.array_equal(other[0], items) and np.array_equal(other[1], starts))
+    assert (starts[items == 3] != starts[items == 3][0]).any(), "crops of a long sequence start anywhere"
+
+
+def test_tokenizer_checkpoint_keeps_its_metrics_and_training_state(tmp_path):
+    from m3t.tokenizers.checkpoint import load_tokenizer
+
+    model = tiny_tokenizers()["face"]
+    state = {"epoch": 4, "history": [{"epoch": 4, "train_loss": 0.5}]}
+    save_tokenizer(tmp_path / "face.last.pt", model, "face", 4, 40, "data-v2", {"val_vpe_mm": 3.5, "epoch": 4}, state)
+    loaded = load_tokenizer(tmp_path / "face.last.pt")
+    assert (loaded.group, loaded.epoch, loaded.step, loaded.data_version) == ("face", 4, 40, "data-v2")
+    assert loaded.metrics == {"val_vpe_mm": 3.5, "epoch": 4} and isinstance(loaded.metrics, dict)
+    assert loaded.train_state == state
+    assert torch.equal(loaded.model.mean, model.mean) and torch.equal(loaded.model.std, model.std)
+    assert not loaded.model.training
+    save_tokenizer(tmp_path / "face.pt", model, "face", 4, 40, "data-v2", {})
+    best = load_tokenizer(tmp_path / "face.pt")
+    assert best.metrics == {} and best.train_state is None  # only the resumable checkpoint carries a state
+
+
+def test_decoded_parameters_are_the_decoders_output_mapped_back_by_the_training_statistics():
+    torch.manual_seed(0)
+    model = MotionTokenizer(VAEConfig(input_dim=4, levels=(5, 5, 4), width=8, depth=1)).eval()
+    mean, std = torch.tensor([1.0, -2.0, 0.5, 30.0]), torch.tensor([0.5, 2.0, 1.0, 4.0])
+    model.set_normalisation(mean, std)
+    indices = torch.tensor([[0, 17, 99]])
+    codes = model.quantizer.indices_to_codes(indices)
+    raw = model.decoder(codes.transpose(1, 2)).transpose(1, 2)  # the decoder works in standardised units
+    decoded = model.decode(indices)
+    assert decoded.shape == (1, 12, 4)
+    assert torch.allclose(decoded, raw * std + mean, atol=1e-6)
+    assert torch.allclose(model.decode_codes(codes), decoded)
+    # the encoder sees the same standardisation: parameters shifted and scaled with the statistics encode alike
+    x = torch.randn(1, 8, 4)
+    plain = MotionTokenizer(model.cfg).eval()
+    plain.load_state_dict({**model.state_dict(), "mean": torch.zeros(4), "std": torch.ones(4)})
+    assert torch.allclose(model.encode_latents(x * std + mean), plain.encode_latents(x), atol=1e-5)
+
+
+def test_vq_tokenizer_uses_the_configured_commitment_weight_and_ema_decay():
+    cfg = VAEConfig(input_dim=3, levels=(2, 3), quantizer="vq", width=8, depth=1, vq_code_dim=4, vq_decay=0.5,
+                    vq_beta=0.3)
+    torch.manual_seed(1)
+    model = MotionTokenizer(cfg)
+    vq = model.quantizer
+    assert (vq.codebook_size, vq.dim) == (6, 4) and model.codebook_size == 6
+    codebook = torch.randn(6, 4)
+    vq.codebook.copy_(codebook)
+    vq.ema_sum.copy_(10.0 * codebook)
+    vq.ema_count.fill_(10.0)  # well above the reset threshold: no code is reset by one update
+    vq.initialised.fill_(True)
+    x = torch.randn(2, 8, 3)
+
+    model.eval()
+    out = model(x)
+    flat = out.latents.detach().reshape(-1, 4)
+    expected = torch.cdist(flat, codebook).argmin(dim=1)
+    assert torch.equal(out.indices.reshape(-1), expected)
+    assert out.quant_loss.item() == pytest.approx(0.3 * ((flat - codebook[expected]) ** 2).mean().item(), rel=1e-5)
+    assert torch.equal(vq.codebook, codebook), "no codebook update outside training"
+
+    model.train()
+    out = model(x)
+    counts = torch.bincount(out.indices.reshape(-1), minlength=6).float()
+    sums = torch.zeros(6, 4).index_add_(0, out.indices.reshape(-1), out.latents.reshape(-1, 4).detach())
+    assert torch.allclose(vq.ema_count, 0.5 * 10.0 + 0.5 * counts)
+    assert torch.allclose(vq.codebook, (0.5 * 10.0 * codebook + 0.5 * sums) / vq.ema_count[:, None], atol=1e-6)
+    assert vq.last_resets == 0
+
+
+def test_batch_perplexity_is_the_exponential_of_the_code_entropy():
+    from m3t.tokenizers.fsq import batch_perplexity
+
+    assert batch_perplexity(torch.tensor([0, 1, 2, 3]), 8).item() == pytest.approx(4.0)
+    assert batch_perplexity(torch.tensor([[5, 5], [5, 5]]), 8).item() == pytest.approx(1.0)
+    # p = (3/4, 1/4): exp(-(3/4 ln 3/4 + 1/4 ln 1/4))
+    expected = float(np.exp(-(0.75 * np.log(0.75) + 0.25 * np.log(0.25))))
+    assert batch_perplexity(torch.tensor([1, 1, 1, 6]), 8).item() == pytest.approx(expected, rel=1e-5)
+    assert batch_perplexity(torch.zeros(0, dtype=torch.long), 8).item() == pytest.approx(1.0)
+
+
+def test_fsq_refuses_bad_levels_keeps_no_state_and_names_a_channel_mismatch():
+    from m3t.tokenizers.fsq import FSQ
+
+    for bad in ((), (5, 1), (1,), (0, 4)):
+        with pytest.raises(ValueError, match=re.escape(f"FSQ levels must be integers >= 2, got {bad}")):
+            FSQ(bad)
+    fsq = FSQ((5, 4, 3))
+    assert fsq.codebook_size == 60 and fsq.dim == 3
+    assert fsq.state_dict() == {}  # everything is rebuilt from the levels in the config
+    fsq.load_state_dict({})  # an old checkpoint without buffers loads
+    with pytest.raises(ValueError, match=r"^FSQ with 3 levels got latents with 2 channels$"):
+        fsq(torch.zeros(4, 7, 2))
+    out = fsq(torch.zeros(4, 7, 3))
+    assert out.indices.shape == (4, 7)
+
+
+def test_vq_names_its_code_dim_and_the_latents_channels_on_a_mismatch():
+    from m3t.tokenizers.vq import EMAVQ
+
+    vq = EMAVQ(8, 4)
+    with pytest.raises(ValueError, match=r"^VQ with code dim 4 got latents with 3 channels$"):
+        vq(torch.zeros(2, 5, 3))
+
+
+def test_vq_defaults_are_the_papers_and_one_training_step_is_an_ema_update_by_hand():
+    """T2M-GPT / SOKE's VQ (M3T's VQ baseline): decay 0.99 and commitment weight 0.02 by default, as in the
+    ``tokenizer`` config; a training step moves each code's EMA statistics by ``decay`` and the loss is
+    ``beta * mse(z, q)`` against the codebook before the update."""
+    from m3t.tokenizers.vq import EMAVQ
+
+    vq = EMAVQ(4, 3)
+    cfg = TokenizerConfig()
+    assert (vq.decay, vq.beta, vq.reset_threshold) == (cfg.vq_decay, cfg.vq_beta, 1.0) == (0.99, 0.02, 1.0)
+    codebook = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    vq.codebook.copy_(codebook)
+    vq.ema_sum.copy_(5.0 * codebook)
+    vq.ema_count.fill_(5.0)
+    vq.initialised.fill_(True)
+    z = torch.tensor([[0.1, 0.0, 0.0], [0.9, 0.1, 0.0], [1.1, 0.0, 0.0], [0.0, 0.8, 0.1]])
+    vq.train()
+    out = vq(z)
+    assert out.indices.tolist() == [0, 1, 1, 2]
+    assert out.loss.item() == pytest.approx(0.02 * ((z - codebook[[0, 1, 1, 2]]) ** 2).mean().item(), rel=1e-6)
+    counts = torch.tensor([1.0, 2.0, 1.0, 0.0])
+    sums = torch.stack([z[0], z[1] + z[2], z[3], torch.zeros(3)])
+    torch.testing.assert_close(vq.ema_count, 0.99 * 5.0 + 0.01 * counts)
+    torch.testing.assert_close(vq.ema_sum, 0.99 * 5.0 * codebook + 0.01 * sums)
+    torch.testing.assert_close(vq.codebook,
+                               (0.99 * 5.0 * codebook + 0.01 * sums) / (0.99 * 5.0 + 0.01 * counts)[:, None])
+    assert vq.last_resets == 0
+
+
+def test_tokenizer_config_passes_its_settings_to_each_groups_vae():
+    cfg = TokenizerConfig(levels_body=(3, 2), levels_hand=(5,), levels_face=(2, 2, 2), quantizer="vq", width=16,
+                          depth=3, down_stages=1, dilation_growth=2, vq_code_dim=7, vq_decay=0.5, vq_beta=0.25)
+    for group, levels in (("body", (3, 2)), ("hand", (5,)), ("face", (2, 2, 2))):
+        vae = cfg.vae_config(group, 11)
+        assert (vae.input_dim, vae.levels, vae.quantizer, vae.width, vae.depth, vae.down_stages,
+                vae.dilation_growth, vae.vq_code_dim, vae.vq_decay, vae.vq_beta) == (
+            11, levels, "vq", 16, 3, 1, 2, 7, 0.5, 0.25)
+
+
+def test_window_sampler_masks_are_boolean_and_mark_the_real_frames_of_a_short_sequence():
+    seqs = [np.arange(10, dtype=np.float32).reshape(5, 2), np.ones((12, 2), np.float32)]
+    sampler = WindowSampler(seqs, 8, 2, per_sequence=1)
+    (x, mask), = list(sampler.epoch(0))
+    assert mask.dtype == torch.bool and mask.shape == (2, 8)
+    items, _ = sampler.crops(0)
+    short = int(np.flatnonzero(items == 0)[0])
+    assert mask[short].tolist() == [True] * 5 + [False] * 3 and mask[1 - short].all()
+    assert torch.equal(x[short, 5:], torch.tensor([[8.0, 9.0]] * 3)), "padding repeats the last frame"
+    assert torch.equal(x[short][mask[short]], torch.from_numpy(seqs[0])), "a boolean mask selects the real frames"
