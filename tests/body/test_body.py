@@ -5,10 +5,15 @@ import numpy as np
 import pytest
 import roma
 import torch
+from builders import random_params
 
 from m3t.body.protocol import Correspondence
-from m3t.body.rotations import identity_6d, matrix_to_6d, mirror_rotations, sixd_to_matrix
-from builders import random_params
+from m3t.body.rotations import (
+    identity_6d,
+    matrix_to_6d,
+    mirror_rotations,
+    sixd_to_matrix,
+)
 
 
 def test_the_model_is_built_to_the_same_bits_whatever_the_thread_count():

@@ -4,9 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
-from m3t.body.metric_sets import BODY_POINTS, HAND_POINTS, metric_keypoints, metric_points
 from smplfx_fixtures import smplfx_motion
+
+from m3t.body.metric_sets import (
+    BODY_POINTS,
+    HAND_POINTS,
+    metric_keypoints,
+    metric_points,
+)
 
 
 @pytest.fixture(params=["anny", "smplfx"])

@@ -1,10 +1,12 @@
 """The model-file readers of the body models (m3t.body.model_files): Python-2 and protocol-0/1 pickles with sparse regressors, the arrays and numbers they keep, what a reader cannot read named, and landmark vertices from face corners."""
 from __future__ import annotations
 
-import numpy as np
 import pickle
+
+import numpy as np
 import pytest
 from corpus_fixtures import write_python2_pickle
+
 from m3t.body.model_files import ModelFileError, load_model_arrays, load_pickle_safely
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from builders import jittered_motion
 
 from m3t.body.metric_sets import BODY_POINTS, HAND_POINTS
 from m3t.body.skeleton import (
@@ -21,7 +22,6 @@ from m3t.body.skeleton import (
     normalise,
     regions,
 )
-from builders import jittered_motion
 
 TOY = SkeletonGraph("toy", ("body:neck", "body:left_shoulder", "body:right_shoulder"), ((0, 1), (1, 2)))
 
@@ -201,7 +201,8 @@ def test_normalise_round_trip_scale_and_invariance():
 
 
 def test_holistic_points_from_names():
-    from m3t.trackers.posefile import HAND_POINTS as POSE_HAND, POSE_POINTS
+    from m3t.trackers.posefile import HAND_POINTS as POSE_HAND
+    from m3t.trackers.posefile import POSE_POINTS
 
     graph = holistic_graph(face_points=True)
     names = [f"POSE_LANDMARKS:{p}" for p in POSE_POINTS]

@@ -5,6 +5,7 @@ Real files: set M3T_SMPLX_DIR (SMPLX_NEUTRAL.npz, SMPL-X__FLAME_vertex_ids.npy) 
 """
 from __future__ import annotations
 
+import copy
 import os
 import pickle
 from pathlib import Path
@@ -13,21 +14,21 @@ import numpy as np
 import pytest
 import roma
 import torch
+from smplfx_fixtures import (
+    front_camera_fx,
+    smplfx_motion,
+    write_chumpy_style_pickle,
+)
 
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.model_files import ModelFileError, load_model_arrays
 from m3t.body.protocol import Correspondence
 from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
-from m3t.body.smplfx import TO_PROTOCOL_FRAME, SMPLFXBody
+from m3t.body.smplfx import TO_PROTOCOL_FRAME, SMPLFXBody, _depth_levels
 from m3t.body.smplfx_build import SMPLFXFiles, SMPLFXFilesMissing
 from m3t.fitting.evaluate import ground_truth_errors, joints_for, procrustes_error_mm
 from m3t.fitting.fit import FittingConfig, fit_track
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
-from smplfx_fixtures import (
-    front_camera_fx, smplfx_motion, write_chumpy_style_pickle,
-)
-import copy
-from m3t.body.smplfx import _depth_levels
 
 
 def to_frame(points: np.ndarray, root: np.ndarray) -> torch.Tensor:
@@ -214,9 +215,9 @@ def test_fit_recovers_synthetic_smplfx(fx):
 @pytest.mark.slow
 def test_fit_corpus_runs_with_smplfx(fx_files, tmp_path):
     """fit-corpus end to end with ``body.model: smplfx`` (load_body_model) on a tiny SMPL-FX corpus."""
+    from m3t.corpora.base import CorpusSource
     from m3t.corpora.clip import Clip
     from m3t.corpora.synthetic import SyntheticClip, write_corpus
-    from m3t.corpora.base import CorpusSource
     from m3t.fitting.config import FitCorpusConfig, FitJob
     from m3t.fitting.corpus import run_fit_corpus
 

@@ -3,9 +3,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from m3t.body.model_files import ModelFileError, load_model_arrays
-from m3t.body.smplfx_build import (FLAME_JAW, FLAME_LEFT_EYE, FLAME_NECK, FLAME_RIGHT_EYE, POSED_JOINTS, SMPLFXFiles,
-                                   SMPLX_JOINTS, build_smplfx, neck_rings, teeth_geometry)
+from m3t.body.smplfx_build import (
+    FLAME_JAW,
+    FLAME_LEFT_EYE,
+    FLAME_NECK,
+    FLAME_RIGHT_EYE,
+    POSED_JOINTS,
+    SMPLX_JOINTS,
+    SMPLFXFiles,
+    build_smplfx,
+    neck_rings,
+    teeth_geometry,
+)
 
 
 # ------------------------------------------------------------------------------------------------ SMPL-FX build

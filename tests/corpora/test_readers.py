@@ -8,18 +8,36 @@ import gzip
 import json
 import pickle
 import sys
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
+import corpus_fixtures as fx
 import numpy as np
 import pytest
 
-import corpus_fixtures as fx
 from m3t.corpora.base import (
-    CORPORA, MEDIA_KINDS, SPLITS, CorpusError, Listing, Quarantined, hash_split, media_path_problem, open_corpus,
+    CORPORA,
+    MEDIA_KINDS,
+    SPLITS,
+    Collector,
+    CorpusError,
+    Listing,
+    Quarantined,
+    hash_split,
+    hash_unit,
+    media_path_problem,
+    open_corpus,
 )
+from m3t.corpora.csl_daily import INFO_KEYS, CslDailyConfig, CslDailyCorpus, _record
 from m3t.corpora.fingerspelling import FingerspellingCorpus, lexicon_root, spell
-from m3t.corpora.fitted_pickles import SmplxSequenceError, frame_number, load_smplx_sequence
-from m3t.corpora.mead import read_flame_params
+from m3t.corpora.fitted_pickles import (
+    SmplxSequenceError,
+    frame_number,
+    load_smplx_sequence,
+)
+from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
+from m3t.corpora.mead import MeadCorpus, read_flame_params
+from m3t.corpora.nmfs_csl import NmfsCslConfig, NmfsCslCorpus
+from m3t.corpora.phoenix14t import Phoenix14TCorpus
 from m3t.corpora.posefile import read_pose, read_pose_info
 
 
@@ -643,3 +661,268 @@ def test_mead_refuses_a_frame_rate_that_is_not_positive(fps):
 
     with pytest.raises(ValueError, match=f"corpora.mead.fps must be > 0, got {fps}"):
         MeadConfig(fps=fps)
+
+
+# ----------------------------------------------------------------------------------------- NMFs-CSL
+def test_confusing_list_rows_are_numbered_from_line_one(tmp_path):
+    fx.build_nmfs_csl(tmp_path)
+    (tmp_path / "confusing.txt").write_text("0\nzwei\n\n9\n2\n", encoding="utf-8")
+    corpus = NmfsCslCorpus(tmp_path, NmfsCslConfig(confusing_list="confusing.txt"))
+    bad = {(q.file, q.row): q.reason for q in corpus.listing().quarantined if q.file == "confusing.txt"}
+    assert bad == {("confusing.txt", 2): "'zwei' is not a class index",
+                   ("confusing.txt", 4): "class 9 is not in dictionary.txt"}
+    with pytest.raises(CorpusError, match=r"confusing.txt line 2: 'zwei' is not a class index"):
+        corpus.subset(0)
+    (tmp_path / "confusing.txt").write_text("0\n2\n", encoding="utf-8")
+    assert (corpus.subset(0), corpus.subset(1), corpus.subset(2)) == ("confusing", "normal", "confusing")
+
+
+# ----------------------------------------------------------------------------------------- CSL-Daily pickle
+def test_csl_daily_pickle_without_info_list_is_refused_naming_what_it_holds(tmp_path):
+    """The annotation pickle must be the release's dict with an ``info`` list (see ``build_csl_daily``)."""
+    fx.build_csl_daily(tmp_path)
+    corpus = CslDailyCorpus(tmp_path)
+    path = tmp_path / "sentence_label" / "csl2020ct_v2.pkl"
+    info = corpus.read_info()
+    assert info[0]["name"] == "S000000_P0000_T00" and fx.CSL_REAL_INFO in info and len(info) == 12
+    for payload, found in (({"gloss_map": ["你"], "char_map": []}, "['char_map', 'gloss_map']"),
+                           ({"info": "S000007_P0003_T00"}, "['info']"), ([fx.CSL_REAL_INFO], "list")):
+        with open(path, "wb") as fh:
+            pickle.dump(payload, fh)
+        with pytest.raises(CorpusError) as err:
+            corpus.read_info()
+        assert str(err.value).startswith(f"{path}: expected a dict with an 'info' list of clip records, "
+                                         f"found {found}. Point the corpus root at the CSL-Daily folder")
+
+
+# ----------------------------------------------------------------------------------------- MEAD, NMFs-CSL, PHOENIX
+def test_flame_files_are_read_by_suffix_and_a_missing_one_is_named(tmp_path):
+    """EMOTE's release stores (1, T, D) datasets (``fx.flame_arrays(batch_axis=True)``); ``.h5`` is the same format
+    as ``.hdf5``."""
+    arrays = fx.flame_arrays(4, exp=100, shape=300, batch_axis=True)
+    for name in ("shape_pose_cam.hdf5", "shape_pose_cam.h5"):
+        fx.write_hdf5(tmp_path / name, arrays)
+        params = read_flame_params(tmp_path / name)
+        assert {k: v.shape for k, v in params.items()} == {"exp": (4, 100), "jaw": (4, 3), "global_pose": (4, 3),
+                                                          "shape": (4, 300), "cam": (4, 3)}
+        np.testing.assert_array_equal(params["jaw"], arrays["jaw"][0])
+    (tmp_path / "shape_pose_cam.mat").write_bytes(b"MATLAB 5.0")
+    with pytest.raises(CorpusError, match="unsupported FLAME parameter file; expected shape_pose_cam.npz or .hdf5"):
+        read_flame_params(tmp_path / "shape_pose_cam.mat")
+    missing = tmp_path / "M003" / "front" / "angry" / "level_1" / "001" / "shape_pose_cam.hdf5"
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(missing)
+    assert str(err.value) == f"FLAME parameter file {missing} not found"
+
+
+def test_nmfs_list_blank_lines_are_skipped_and_rows_keep_their_line_numbers(tmp_path):
+    fx.build_nmfs_csl(tmp_path)
+    lines = (tmp_path / "train.txt").read_text(encoding="utf-8").splitlines()
+    (tmp_path / "train.txt").write_text("\n".join(lines[:2] + ["", "  "] + lines[2:]) + "\n", encoding="utf-8")
+    listing = NmfsCslCorpus(tmp_path).listing()
+    train = [c for c in listing.clips if c.split == "train"]
+    assert [c.id for c in train] == ["P01__0_01", "P01__1_01", "P02__2_01", "P02__3_01", "P03__0_02"]
+    assert all(c.signer == "unknown" and c.language == "CSL" for c in listing.clips)
+    assert [(q.file, q.row, q.clip_id) for q in listing.quarantined] == [
+        ("train.txt", 8, "P09__9_01"), ("train.txt", 9, None), ("train.txt", 10, "P09__missing"),
+        ("train.txt", 11, None)]
+
+
+def test_phoenix_rows_without_name_or_frame_folder_are_quarantined_with_every_field(tmp_path):
+    """Rows in the release's ``|``-separated layout (see ``fx.build_phoenix14t``) with the name or the video
+    column's folder left out."""
+    fixture = fx.build_phoenix14t(tmp_path)
+    path = tmp_path / fx.PHOENIX_FILE.format(split="train")
+    lines = path.read_text(encoding="utf-8").splitlines()
+    lines.append("|26October_2010_Tuesday_tagesschau-1/1/*.png|-1|-1|Signer05|REGEN|es regnet")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    quarantined = Phoenix14TCorpus(tmp_path).listing().quarantined
+    file = fx.PHOENIX_FILE.format(split="train")
+    (no_folder_row,) = [row for f, row, reason in fixture.bad if "names no frame folder" in reason]
+    assert Quarantined(file, no_folder_row, "train_no_folder",
+                       "video column '*.png' names no frame folder; expected '<name>/1/*.png'") in quarantined
+    assert quarantined[-1] == Quarantined(file, len(lines), None, "empty name")
+
+
+# ----------------------------------------------------------------------------------------- split rows and errors
+def test_csl_daily_split_rows_without_name_or_split_are_quarantined_and_clips_carry_the_corpus_name(tmp_path):
+    """Rows of ``sentence_label/split_1.txt`` (``name|split``, see ``build_csl_daily``) with one half empty."""
+    fx.build_csl_daily(tmp_path)
+    split_file = tmp_path / "sentence_label" / "split_1.txt"
+    lines = split_file.read_text(encoding="utf-8").splitlines()
+    split_file.write_text("\n".join(lines + ["|train", "S100009_P0000_T00|", "a|b|test"]) + "\n", encoding="utf-8")
+    corpus = CslDailyCorpus(tmp_path)
+    out = Collector(tmp_path)
+    splits = corpus.read_splits(out)
+    assert "" not in splits and "S100009_P0000_T00" not in splits and splits["S000004_P0000_T00"] == ("dev", 6)
+    n = len(lines)
+    assert out.listing().quarantined[-3:] == (
+        Quarantined("sentence_label/split_1.txt", n + 1, None,
+                    "malformed row: expected '<name>|<split>', found '|train'"),
+        Quarantined("sentence_label/split_1.txt", n + 2, "S100009_P0000_T00",
+                    "split '' unknown; expected one of train, dev, test"),
+        Quarantined("sentence_label/split_1.txt", n + 3, None,
+                    "malformed row: expected '<name>|<split>', found 'a|b|test'"))
+    listing = corpus.listing()
+    assert {c.corpus for c in listing.clips} == {"csl_daily"} and len(listing.clips) == 6
+
+
+def test_how2sign_clip_folder_option_is_formatted_per_split(tmp_path):
+    from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
+
+    corpus = How2SignCorpus(tmp_path, How2SignConfig(clips_dir="videos/{split}/clips"))
+    assert corpus.clips_dir("val") == PurePosixPath("videos/val/clips")
+    assert corpus.clips_dir("train") == PurePosixPath("videos/train/clips")
+
+
+def test_nmfs_dictionary_glosses_may_hold_spaces(tmp_path):
+    (tmp_path / "dictionary.txt").write_text("0\t打 电话\n1 thank you very much\n", encoding="utf-8")
+    assert NmfsCslCorpus(tmp_path).read_dictionary() == {0: "打 电话", 1: "thank you very much"}
+
+
+@pytest.mark.parametrize("config, option, bad, good", [(How2SignConfig, "how2sign", (0.0, -24.0), 30.0),
+                                                      (CslDailyConfig, "csl_daily", (0, -30.0), 25.0)])
+def test_video_corpora_refuse_a_non_positive_frame_rate_naming_the_option(config, option, bad, good):
+    for fps in bad:
+        with pytest.raises(ValueError) as err:
+            config(fps=fps)
+        assert str(err.value) == f"corpora.{option}.fps must be > 0, got {fps}"
+    assert config(fps=good).fps == good
+
+
+def test_csl_daily_info_entry_that_is_not_a_dict_names_its_type_and_the_keys_expected():
+    assert _record(["S000000_P0000_T00", 120]) == ("info entry is a list, expected a dict with keys name, length, "
+                                                    "label_gloss, label_char, label_word, signer")
+    assert _record("S000000_P0000_T00").startswith("info entry is a str, expected a dict with keys name, length,")
+    entry = {"name": "S000000_P0000_T00", "length": 120, "label_gloss": ["你", "好"], "label_char": ["你", "好"],
+             "label_word": ["你好"], "signer": 0}
+    assert _record(entry) is entry and set(entry) == set(INFO_KEYS)
+    assert _record({k: v for k, v in entry.items() if k != "signer"}) == "info entry lacks keys ['signer']"
+    assert _record({**entry, "name": ""}) == "name '' is not a non-empty string"
+    assert _record({**entry, "name": 7}) == "name 7 is not a non-empty string"
+    assert _record({**entry, "label_char": "你好"}) == "label_char is not a list of strings"
+    assert _record({**entry, "label_gloss": ["你", 2]}) == "label_gloss is not a list of strings"
+    assert _record({**entry, "label_word": []}) == "label_word is empty (no sentence text)"
+
+
+def test_nmfs_dictionary_bad_lines_are_quarantined_with_the_file_and_line(tmp_path):
+    (tmp_path / "dictionary.txt").write_text("0\t谢谢\n\nx\t你好\n0 再见\n2\n3\tthank you\n", encoding="utf-8")
+    out = Collector(tmp_path)
+    assert NmfsCslCorpus(tmp_path).read_dictionary(out) == {0: "谢谢", 3: "thank you"}
+    assert out.listing().quarantined == (
+        Quarantined("dictionary.txt", 3, None, "malformed class line 'x\\t你好': expected '<index><tab or space><gloss>'"),
+        Quarantined("dictionary.txt", 4, None, "class 0 defined twice"),
+        Quarantined("dictionary.txt", 5, None, "malformed class line '2': expected '<index><tab or space><gloss>'"))
+    with pytest.raises(CorpusError) as err:
+        NmfsCslCorpus(tmp_path).read_dictionary()
+    assert str(err.value).startswith(f"{tmp_path / 'dictionary.txt'} line 3: malformed class line")
+
+
+def test_nmfs_dev_clips_are_drawn_from_train_by_the_documented_hash(tmp_path):
+    """``dev_fraction`` moves the train clips with ``hash_unit(id, salt="nmfs_csl-dev") < dev_fraction`` (module
+    docstring): the dev set is part of the data version and is pinned here."""
+    fx.build_nmfs_csl(tmp_path)
+    clips = NmfsCslCorpus(tmp_path, NmfsCslConfig(dev_fraction=0.5)).listing().clips
+    moved = {c.id for c in clips if c.split == "dev"}
+    assert moved == {c.id for c in clips if c.get("source_split") == "train"
+                     and hash_unit(c.id, salt="nmfs_csl-dev") < 0.5}
+    assert sorted(moved) == ["P02__2_01", "P02__3_01", "P03__0_02"]
+    assert all(c.split == "test" for c in clips if c.get("source_split") == "test")
+    assert {c.split for c in NmfsCslCorpus(tmp_path).listing().clips} == {"train", "test"}
+
+
+def test_phoenix_clips_record_the_rows_start_and_end(tmp_path):
+    fx.build_phoenix14t(tmp_path)
+    path = tmp_path / fx.PHOENIX_FILE.format(split="dev")
+    lines = path.read_text(encoding="utf-8").splitlines()
+    name = lines[1].split("|")[0]
+    lines[1] = f"{name}|{name}/1/*.png|12|87|Signer00|REGEN MORGEN|morgen regnet es"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    clips = {c.id: c for c in Phoenix14TCorpus(tmp_path).listing().clips}
+    assert (clips[name].get("start"), clips[name].get("end"), clips[name].get("frame_glob")) == ("12", "87", "*.png")
+    assert clips[name].get("annotation") == f"{fx.PHOENIX_FILE.format(split='dev')}:2"
+    other = clips[lines[2].split("|")[0]]
+    assert (other.get("start"), other.get("end")) == ("-1", "-1")
+
+
+# ----------------------------------------------------------------------------------------- more reader details
+def test_csl_daily_info_entry_that_is_not_a_dict_is_quarantined_and_clips_keep_their_length(tmp_path):
+    """An ``info`` list (see ``build_csl_daily``) with a bare name string among the release's dict records."""
+    fx.build_csl_daily(tmp_path)
+    path = tmp_path / "sentence_label" / "csl2020ct_v2.pkl"
+    with open(path, "rb") as fh:
+        data = pickle.load(fh)
+    data["info"][0]["length"] = 117
+    data["info"].insert(1, "S000001_P0000_T00")
+    with open(path, "wb") as fh:
+        pickle.dump(data, fh)
+    listing = CslDailyCorpus(tmp_path).listing()
+    assert Quarantined("sentence_label/csl2020ct_v2.pkl", 1, None,
+                       "info entry is a str, expected a dict with keys name, length, label_gloss, label_char, "
+                       "label_word, signer") in listing.quarantined
+    lacking = next(i for i, e in enumerate(data["info"]) if isinstance(e, dict) and e["name"] == "S100001_P0000_T00")
+    assert Quarantined("sentence_label/csl2020ct_v2.pkl", lacking, "S100001_P0000_T00",
+                       "info entry lacks keys ['label_gloss']") in listing.quarantined
+    assert [q.file for q in listing.quarantined if q.clip_id == "S100001_P0000_T00"] == [
+        "sentence_label/csl2020ct_v2.pkl"]  # its split row is not reported a second time
+    clips = {c.id: c for c in listing.clips}
+    assert dict(clips["S000000_P0000_T00"].extra) == {"media_kind": "frames", "chars": "你好吗", "length": "117"}
+    assert dict(clips["S000002_P0000_T00"].extra)["length"] == "2"
+
+
+def _how2sign_train_csv(root: Path) -> Path:
+    (path,) = root.rglob("how2sign_realigned_train.csv")
+    return path
+
+
+def test_how2sign_row_without_sentence_name_is_quarantined_and_a_bad_header_gets_the_hint(tmp_path):
+    """The realigned CSVs of ``build_how2sign`` (the official download script's layout) with a row whose
+    SENTENCE_NAME is blank, then with a comma-separated header."""
+    fx.build_how2sign(tmp_path)
+    path = _how2sign_train_csv(tmp_path)
+    text = path.read_text(encoding="utf-8")
+    lines = text.splitlines()
+    path.write_text(text + "v\tv-rgb\tv_9\t \t1.0\t2.0\tNo name.\n", encoding="utf-8")
+    listing = How2SignCorpus(tmp_path).listing()
+    rel = path.relative_to(tmp_path).as_posix()
+    assert Quarantined(rel, len(lines) + 1, None, "empty SENTENCE_NAME") in listing.quarantined
+    path.write_text(text.replace("\t", ",", 6), encoding="utf-8")
+    with pytest.raises(CorpusError) as err:
+        How2SignCorpus(tmp_path).listing()
+    message = str(err.value)
+    assert message.startswith(f"{path} line 1: header is ")
+    assert message.endswith("Is this a How2Sign realigned CSV (tab-separated)? Point the corpus root at the How2Sign "
+                            "folder, or set option annotations_dir to the folder holding "
+                            "how2sign_realigned_<split>.csv and clips_dir to the sentence clip folders.")
+
+
+def test_phoenix_row_without_name_leaves_the_rows_after_it_listed(tmp_path):
+    """PHOENIX-2014-T's test ``corpus.csv`` (see ``build_phoenix14t``) with a nameless row before its one row."""
+    fx.build_phoenix14t(tmp_path)
+    (path,) = tmp_path.rglob("PHOENIX-2014-T.test.corpus.csv")
+    before = {c.id for c in Phoenix14TCorpus(tmp_path).listing().clips if c.split == "test"}
+    header, *rows = path.read_text(encoding="utf-8").splitlines()
+    path.write_text("\n".join([header, "|x/1/*.png|-1|-1|Signer01|REGEN|es regnet"] + rows) + "\n", encoding="utf-8")
+    listing = Phoenix14TCorpus(tmp_path).listing()
+    assert len(before) == 1 and {c.id for c in listing.clips if c.split == "test"} == before
+    assert Quarantined(path.relative_to(tmp_path).as_posix(), 2, None, "empty name") in listing.quarantined
+
+
+def test_mead_errors_name_the_root_or_the_file_and_what_was_expected(tmp_path):
+    not_a_folder = tmp_path / "mead.txt"
+    not_a_folder.write_text("x", encoding="utf-8")
+    with pytest.raises(CorpusError) as err:
+        MeadCorpus(not_a_folder).listing()
+    assert str(err.value) == (f"MEAD root {not_a_folder} is not a folder; point it at the folder of subject folders "
+                              f"(EMOTE's release: .../reconstructions/EMICA-MEAD_flame2020)")
+    corrupt = tmp_path / "shape_pose_cam.npz"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip archive")
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(corrupt)
+    assert str(err.value).startswith(f"{corrupt}: not a readable .npz (")
+    assert str(err.value).endswith("); re-export the clip")
+    np.savez(corrupt, exp=np.zeros((2, 50), np.float32), jaw=np.zeros((2, 3), np.float32))
+    with pytest.raises(CorpusError) as err:
+        read_flame_params(corrupt)
+    assert str(err.value) == (f"{corrupt} lacks datasets ['global_pose', 'shape', 'cam']; expected exp, jaw, "
+                              f"global_pose, shape, cam (EMOTE's export)")

@@ -9,25 +9,32 @@ neccam/slt's gzip pickles (``corpus_fixtures.build_slt_import``, which cites its
 """
 from __future__ import annotations
 
-import corpus_fixtures as cfx
 import csv
 import dataclasses
 import json
 import math
+import shutil
+from pathlib import Path
+
+import corpus_fixtures as cfx
 import numpy as np
 import pytest
-import shutil
 import torch
 from builders import front_camera, smooth_motion
+
 from m3t.config import load_params
 from m3t.corpora.clip import Clip
 from m3t.corpora.synthetic import SyntheticClip, write_corpus
-from m3t.fitting.corpus import FitContext, NO_EXTERNAL, process_batch, process_clip, track_clip
+from m3t.fitting.corpus import (
+    NO_EXTERNAL,
+    FitContext,
+    process_batch,
+    process_clip,
+    track_clip,
+)
 from m3t.fitting.report import ClipOutcome
 from m3t.shards.io import read_shard
 from m3t.trackers.track import load_track
-from pathlib import Path
-
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -5,15 +5,16 @@ that mutation testing found unchecked.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
+from typing import ClassVar
+
 import pytest
 import torch
+
 from m3t.config import load_params
 from m3t.corpora.clip import Clip
 from m3t.fitting.corpus import FitContext
 from m3t.fitting.report import ClipOutcome
-from pathlib import Path
-from typing import ClassVar
-
 
 ROOT = Path(__file__).resolve().parents[2]
 

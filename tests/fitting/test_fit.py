@@ -6,12 +6,17 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from builders import front_camera, smooth_motion
 
 from m3t.fitting.evaluate import ground_truth_errors, joints_for, procrustes_error_mm
-from m3t.fitting.fit import FittingConfig, acceleration_loss, fit_track, reprojection_loss
+from m3t.fitting.fit import (
+    FittingConfig,
+    acceleration_loss,
+    fit_track,
+    reprojection_loss,
+)
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 from m3t.trackers.track import TrackError, load_track, save_track
-from builders import front_camera, smooth_motion
 
 FIT = FittingConfig(iterations=200, camera_iterations=80, lr=0.02)
 

@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from builders import front_camera, smooth_motion
 
 from m3t.fitting.evaluate import ground_truth_errors
 from m3t.fitting.fit import (
@@ -24,7 +25,6 @@ from m3t.fitting.fit import (
 )
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 from m3t.trackers.track import landmark_slices
-from builders import front_camera, smooth_motion
 
 IDENTITY = torch.tensor([0.4, 0.5, 0.5, 0.45, 0.6, 0.5])
 
@@ -155,10 +155,11 @@ def test_a_batch_refuses_mixed_landmark_sets(body, clips):
 
 def test_the_engine_fits_a_signers_clips_with_one_identity(body, tmp_path):
     """fit-corpus batches by signer: every clip of a signer gets the same identity, and a rerun is all cached."""
+    from builders import tiny_params
+
     from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
     from m3t.fitting.corpus import FitContext, plan_batches, run_fit_corpus
     from m3t.shards.io import read_shard
-    from builders import tiny_params
 
     params = tiny_params(tmp_path, batch_clips=3, batch_frames=60, workers=1)
     params = dataclasses.replace(params, fitting=dataclasses.replace(params.fitting, iterations=8, camera_iterations=4,

@@ -6,12 +6,13 @@ that mutation testing found unchecked.
 from __future__ import annotations
 
 import dataclasses
+
 import numpy as np
 import pytest
 import torch
 from builders import front_camera, smooth_motion
-from m3t.fitting.report import ClipOutcome
 
+from m3t.fitting.report import ClipOutcome
 
 IDENTITY = np.array([0.4, 0.5, 0.5, 0.45, 0.6, 0.5], np.float32)
 

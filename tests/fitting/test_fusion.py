@@ -325,7 +325,14 @@ def test_fusion_interpolates_rotations_along_the_geodesic_and_scalars_linearly()
     import roma
 
     from m3t.body.protocol import Modality, ModalityLayout
-    from m3t.fitting.fusion import INTERPOLATED, REST, FusionConfig, TrackerStream, fuse, rot_to_flat6d
+    from m3t.fitting.fusion import (
+        INTERPOLATED,
+        REST,
+        FusionConfig,
+        TrackerStream,
+        fuse,
+        rot_to_flat6d,
+    )
 
     def about_z(degrees: float) -> np.ndarray:
         return rot_to_flat6d(roma.rotvec_to_rotmat(torch.tensor([[0.0, 0.0, np.radians(degrees)]],

@@ -10,6 +10,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+import corpus_fixtures as cfx
 import corpus_fixtures as fx
 import numpy as np
 import pytest
@@ -19,16 +20,15 @@ import torch
 from m3t.body.rotations import sixd_to_matrix
 from m3t.config import load_params
 from m3t.corpora.base import open_corpus
+from m3t.corpora.clip import Clip
 from m3t.corpora.fitted_pickles import load_smplx_sequence
 from m3t.corpora.mead import read_flame_params
 from m3t.fitting.corpus import FitContext, run_fit_corpus
 from m3t.fitting.imports import BODY_POSE_INDEX, IMPORTERS, face_layout, smplfx_layout
+from m3t.fitting.report import ClipOutcome
 from m3t.shards.io import read_shard
 from m3t.shards.schema import layout_to_json
 from m3t.trackers.dispatch import REFUSED, ClipRefused, track_real_clip
-import corpus_fixtures as cfx
-from m3t.corpora.clip import Clip
-from m3t.fitting.report import ClipOutcome
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -8,12 +8,14 @@ import csv
 import dataclasses
 import json
 import math
+from pathlib import Path
+
 import numpy as np
 import pytest
+
 from m3t.corpora.clip import Clip
 from m3t.fitting.corpus import NO_EXTERNAL
 from m3t.fitting.report import ClipOutcome
-from pathlib import Path
 
 
 # ------------------------------------------------------------------------------------------ reports
@@ -175,8 +177,8 @@ def test_the_run_summary_counts_clips_and_averages_fit_metrics_of_fitted_clips_o
 
 def test_consolidate_creates_a_nested_shards_folder_and_writes_every_split(tmp_path):
     from m3t.corpora.base import SPLITS
-    from m3t.fitting.report import consolidate
     from m3t.fitting.imports import ImportSettings
+    from m3t.fitting.report import consolidate
 
     layout = ImportSettings("smplfx", 100).layout("keypoints", 6)
     out = tmp_path / "data" / "shards" / "synthetic"

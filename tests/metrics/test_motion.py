@@ -599,7 +599,6 @@ def test_motion_metric_settings_name_the_bad_value_and_the_choices(settings, mes
 def test_torch_backend_workers_compute_cost_matrices_on_that_many_threads_with_the_same_results(monkeypatch):
     import threading
 
-
     from m3t.metrics import motion
 
     rng = np.random.default_rng(4)

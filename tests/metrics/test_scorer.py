@@ -14,7 +14,11 @@ from builders import smooth_motion
 from m3t.body.build_correspondence import umeyama
 from m3t.fitting import evaluate as fitting_evaluate
 from m3t.metrics.motion import evaluate_pairs, summarise
-from m3t.metrics.procrustes import procrustes_error_mm, similarity_align, similarity_transform
+from m3t.metrics.procrustes import (
+    procrustes_error_mm,
+    similarity_align,
+    similarity_transform,
+)
 from m3t.metrics.scorer import MotionPair, MotionScorer
 from m3t.metrics.text import translation_metrics, translation_metrics_by_language
 from m3t.metrics.vertices import vertex_errors_mm

@@ -19,12 +19,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
+from builders import tiny_params
 
 from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
 from m3t.fitting.corpus import FitContext, run_fit_corpus
 from m3t.tokenizers.pipeline import run_train_tokenizers
 from m3t.tokenizers.tokenize import run_tokenize
-from builders import tiny_params
 
 
 def _sha(data: bytes) -> str:

@@ -41,10 +41,11 @@ def test_fit_depends_on_confidence_values_not_only_on_which_points_were_seen(bod
     """Bug: the fitter's confidences reduced to seen / unseen (``conf > 0``) anywhere on the way to the
     objective. Lowering the confidence of every other point of each part (still > 0) must change the fit (the same
     factor on a whole part would not: each part's loss is normalised by its summed confidence)."""
+    from builders import front_camera, smooth_motion
+
     from m3t.camera import Camera
     from m3t.fitting.fit import FittingConfig, fit_track
     from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
-    from builders import front_camera, smooth_motion
 
     torch.set_num_threads(1)
     camera: Camera = front_camera()
@@ -103,9 +104,10 @@ def test_changed_fitting_config_refits_instead_of_reusing_cached_fits(body, tmp_
     """Bug: the fitting config left out of fit-corpus' content key, so a changed ``fitting`` section reuses the
     stale part files of the old config. Checked for both keys: a signer batch (two clips of one signer fitted
     together) and a clip fitted alone."""
+    from builders import tiny_params
+
     from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
     from m3t.fitting.corpus import FitContext, run_fit_corpus
-    from builders import tiny_params
 
     torch.set_num_threads(1)
     params = tiny_params(tmp_path, batch_clips=2)
@@ -163,9 +165,10 @@ def test_masked_mse_ignores_padded_frames():
 def test_tokenizer_train_step_scores_only_real_frames():
     """Bug: the tokenizer's training step dropping the padding mask on its way to the masked MSE. Its reported
     reconstruction error must equal the standardised MSE over real frames computed by hand."""
+    from builders import TINY_MODEL
+
     from m3t.tokenizers.train import train_step
     from m3t.tokenizers.vae import MotionTokenizer
-    from builders import TINY_MODEL
 
     torch.set_num_threads(1)
     torch.manual_seed(0)

@@ -247,6 +247,7 @@ def outside(tmp_path: Path, root: Path, name: str) -> list[str]:
 def test_soke_annotation_outside_the_root_is_never_read(tmp_path, monkeypatch):
     """Layout: tests/corpus_fixtures.py ``build_soke`` (SOKE's release, 2000ZRL/SOKE ``load_data.py``)."""
     import corpus_fixtures as fx
+
     import m3t.corpora.fitted_pickles as fitted
     from m3t.corpora.base import CorpusError, open_corpus
 
@@ -266,6 +267,7 @@ def test_soke_annotation_outside_the_root_is_never_read(tmp_path, monkeypatch):
 def test_slt_files_outside_the_root_are_never_read(tmp_path, monkeypatch):
     """Layout: tests/corpus_fixtures.py ``build_slt`` (neccam/slt's gzip pickles, ``signjoey/dataset.py``)."""
     import corpus_fixtures as fx
+
     import m3t.corpora.fitted_pickles as fitted
     from m3t.corpora.base import open_corpus
 

@@ -17,10 +17,10 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from builders import jittered_motion
 
 from m3t.atomic import atomic_path, copy_file, write_bytes
 from m3t.render.posefile import export_pose, front_view, holistic_points
-from builders import jittered_motion
 
 WIDTH, HEIGHT, FPS = 640, 480, 25.0
 COUNTS = [("POSE_LANDMARKS", 33), ("FACE_LANDMARKS", 468), ("LEFT_HAND_LANDMARKS", 21),
@@ -148,7 +148,12 @@ def test_coordinates_on_the_canvas_and_world_in_metres(exported):
 
 
 def test_pose_format_tools_work(exported):
-    from pose_format.utils.generic import correct_wrists, hands_indexes, pose_hide_legs, reduce_holistic
+    from pose_format.utils.generic import (
+        correct_wrists,
+        hands_indexes,
+        pose_hide_legs,
+        reduce_holistic,
+    )
 
     path = exported[0]
     pose = _read(path)

@@ -9,21 +9,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 from m3t.backtranslation.pipeline import SkeletonInput, run_train_backtranslation
 from m3t.body.skeleton import body_graph
 from m3t.config import load_params
 from m3t.experiment import RunRecord
-from m3t.shards.io import read_split
-from m3t.shards.skeletons import skeleton_clips
 from m3t.sgsa.checkpoint import load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import collate, make_samples, vocabularies
 from m3t.sgsa.pipeline import run_evaluate, run_train
 from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_settings
 from m3t.sgsa.train import losses, train_sgsa
+from m3t.shards.io import read_split
+from m3t.shards.skeletons import skeleton_clips
 from m3t.training import worker_split
-from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 ROOT = Path(__file__).resolve().parents[2]
 

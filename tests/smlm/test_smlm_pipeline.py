@@ -15,8 +15,7 @@ from pose_format import Pose
 
 from m3t.backtranslation.pipeline import run_train_backtranslation
 from m3t.config import load_params
-from m3t.experiment import to_dict
-from m3t.experiment import fetch_runs
+from m3t.experiment import fetch_runs, to_dict
 from m3t.shards.tokens import read_token_shard
 from m3t.smlm.table import production_table
 from m3t.tokenizers.pipeline import run_train_tokenizers

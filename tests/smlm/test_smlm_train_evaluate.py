@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
+
 import numpy as np
 import pytest
-import re
 import torch
 from builders import TINY_VAE, tiny_tokenizers, tiny_train_cfg
+
 from m3t.body.rotations import mirror_rotations
 from m3t.corpora.clip import Clip
 from m3t.shards.schema import FittedClip
 from m3t.shards.tokens import TokenInfo
-
 
 CODEBOOKS = {"body": 100, "left_hand": 180, "right_hand": 180, "face": 216}  # TINY_TOKENIZER's levels
 

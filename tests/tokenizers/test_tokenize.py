@@ -7,10 +7,12 @@ models only.
 from __future__ import annotations
 
 import json
+
 import numpy as np
 import pytest
 import torch
 from builders import DIMS, LAYOUT, NO_FACE, tiny_tokenizers
+
 from m3t.body.rotations import identity_6d, mirror_rotations
 from m3t.corpora.clip import Clip
 from m3t.shards.folders import DataConfig
@@ -21,7 +23,12 @@ from m3t.tokenizers.checkpoint import save_tokenizer
 from m3t.tokenizers.config import VAEConfig
 from m3t.tokenizers.data import GROUPS, STREAMS
 from m3t.tokenizers.evaluate import encode_clip
-from m3t.tokenizers.tokenize import load_tokenizers, run_tokenize, tokenize_clip, tokenize_corpus
+from m3t.tokenizers.tokenize import (
+    load_tokenizers,
+    run_tokenize,
+    tokenize_clip,
+    tokenize_corpus,
+)
 from m3t.tokenizers.vae import MotionTokenizer
 
 

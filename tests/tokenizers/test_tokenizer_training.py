@@ -7,30 +7,34 @@ import copy
 import dataclasses
 import json
 import math
+import re
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 import torch
 import yaml
+from builders import SPLITS, TINY_MODEL, TINY_VAE, tiny_train_cfg
+from float_order import (
+    assert_close_counts,
+    assert_close_json,
+    assert_close_numbers,
+    assert_close_weights,
+)
+from precision_steps import bf16_and_fp32_steps
 
 from m3t.config import load_params
 from m3t.experiment import to_dict
 from m3t.runtime import DistributedContext
 from m3t.shards.io import read_shard
 from m3t.shards.tokens import read_token_shard
+from m3t.tokenizers.config import TokenizerTrainConfig
 from m3t.tokenizers.data import WindowSampler, clip_sequences, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
 from m3t.tokenizers.pipeline import codebook_report
-from m3t.tokenizers.config import TokenizerTrainConfig
 from m3t.tokenizers.train import train_step, train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
-from float_order import assert_close_counts, assert_close_json, assert_close_numbers, assert_close_weights
-from precision_steps import bf16_and_fp32_steps
-from builders import SPLITS, TINY_MODEL
-import re
-from builders import TINY_VAE, tiny_train_cfg
-from typing import ClassVar
 
 ROOT = Path(__file__).resolve().parents[2]
 

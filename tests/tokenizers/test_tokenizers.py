@@ -3,13 +3,15 @@ token shards, codebook statistics and the ablation table. Fast, CPU-only."""
 from __future__ import annotations
 
 import dataclasses
-
 import math
+import re
 
 import numpy as np
 import pytest
 import torch
+from builders import LAYOUT, NO_FACE, tiny_tokenizers
 
+from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import mirror_rotations
 from m3t.corpora.clip import Clip
 from m3t.experiment import RunRecord
@@ -18,17 +20,21 @@ from m3t.shards.schema import ShardFormatError
 from m3t.shards.tokens import TokenClip, TokenInfo, read_token_shard, write_token_shard
 from m3t.tokenizers.ablation import ablation_table, dvc_command, sweep_settings
 from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
-from m3t.tokenizers.data import GROUPS, WindowSampler, clip_sequences, from_canonical, pad_to_multiple, to_canonical
+from m3t.tokenizers.config import TokenizerConfig, VAEConfig
+from m3t.tokenizers.data import (
+    GROUPS,
+    STREAMS,
+    WindowSampler,
+    clip_sequences,
+    from_canonical,
+    pad_to_multiple,
+    to_canonical,
+)
 from m3t.tokenizers.evaluate import encode_clip, reconstruct_clip
 from m3t.tokenizers.fsq import FSQ
-from m3t.tokenizers.config import TokenizerConfig, VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters
-from m3t.training import lr_factor
 from m3t.tokenizers.vq import EMAVQ, PlainVQ
-import re
-from builders import LAYOUT, NO_FACE, tiny_tokenizers
-from m3t.body.protocol import Modality, ModalityLayout
-from m3t.tokenizers.data import STREAMS
+from m3t.training import lr_factor
 
 PAPER_LEVELS = [(5, 5, 4), (6, 6, 5), (6, 6, 6)]
 
