@@ -80,7 +80,8 @@ def _torch_threads_restored():
     torch.set_num_threads(threads)
 
 
-# Markers of whole modules (registered in pyproject.toml, `--strict-markers`): what each module starts or runs.
+# Markers of whole modules, by basename (unique over tests/; registered in pyproject.toml, `--strict-markers`):
+# what each module starts or runs.
 # `pytest -m "not slow"` is the fast lane; single slow tests of otherwise fast modules carry @pytest.mark.slow.
 MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_services": ("slow", "services"),
@@ -88,7 +89,7 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_mlflow_ui": ("slow", "services", "browser"),
     "test_dashboard_browser": ("slow", "browser", "e2e"),
     "test_browser_driver": ("slow", "browser"),
-    "test_fit_dask": ("slow", "services"),
+    "test_cluster": ("slow", "services"),
     "test_pipeline": ("slow", "e2e"),
     "test_smlm_pipeline": ("slow", "e2e"),
     "test_sgsa_pipeline": ("slow", "e2e"),
@@ -99,8 +100,8 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_arithmetic": ("slow", "e2e"),
     "test_study": ("slow", "e2e"),
     "test_dashboard": ("slow", "e2e"),
-    "test_corpus": ("slow",),          # generates whole corpora
-    "test_corpus_design": ("slow",),   # generates the study corpus
+    "test_synthetic": ("slow",),       # generates whole corpora
+    "test_synthetic_design": ("slow",),  # generates the study corpus
     "test_fit_batches": ("slow",),     # fits signer batches to convergence
     "test_experiment": ("slow",),      # opens fresh MLflow stores
 }
