@@ -3,7 +3,7 @@ the in-process runner, byte for byte; a running cluster reached by its address; 
 that dies quarantines only its clip; a lost scheduler stops the run naming its address.
 
 The corpus is the embedded synthetic one (``m3t.corpora.synthetic``, the tiny preset, as in
-``tests/test_pipeline.py``): no published layout is involved, the clips and their ground truth are generated.
+``tests/pipeline/test_pipeline.py``): no published layout is involved, the clips and their ground truth are generated.
 One module cluster (2 single-threaded worker processes, ``allowed-failures`` 0 so a dying worker fails its clip
 at once) serves the "existing cluster" tests; one test starts and closes a LocalCluster of its own.
 """

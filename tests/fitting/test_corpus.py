@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 # lbfgs: a signer batch (fit_corpus.batch_clips) is one problem with one identity, what the batch tests here check;
-# the default, lbfgs_batched (every clip its own problem), is tested in test_lbfgs_batched.py and the pipeline tests
+# the default, lbfgs_batched (every clip its own problem), is tested in fitting/test_lbfgs.py and the pipeline tests
 FAST = {"iterations": 4, "camera_iterations": 2, "solver": "lbfgs"}
 
 
@@ -242,8 +242,9 @@ def write_nlf_npz(path: Path, frames: int) -> None:
 @pytest.fixture(scope="module")
 def pose_root(tmp_path_factory) -> Path:
     """Three ASL letters copied from the packaged lexicon (real pose-format files, as in
-    ``tests/test_fusion_flow.py``) into an index-CSV ``.pose`` collection (``id,path,split,text,language,signer``,
-    :mod:`m3t.corpora.posefile`), one signer; ``fused`` has an NLF output beside its media."""
+    ``tests/pipeline/test_fusion_flow.py``) into an index-CSV ``.pose`` collection
+    (``id,path,split,text,language,signer``, :mod:`m3t.corpora.posefile`), one signer; ``fused`` has an NLF output
+    beside its media."""
     from pose_format import Pose
 
     from m3t.corpora.fingerspelling import lexicon_root

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 # lbfgs: a signer batch (fit_corpus.batch_clips) is one problem with one identity, what the batch tests here check;
-# the default, lbfgs_batched (every clip its own problem), is tested in test_lbfgs_batched.py and the pipeline tests
+# the default, lbfgs_batched (every clip its own problem), is tested in fitting/test_lbfgs.py and the pipeline tests
 FAST = {"iterations": 4, "camera_iterations": 2, "solver": "lbfgs"}
 
 

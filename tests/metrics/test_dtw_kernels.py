@@ -2,7 +2,7 @@
 
 The references are :func:`m3t.metrics.dtw.jpe_distance_matrix`, :func:`m3t.metrics.procrustes.pa_distance_matrix`
 and the numpy anti-diagonal sweep :func:`m3t.metrics.dtw.dtw_batch` (itself checked against brute force in
-``tests/test_metrics_motion.py``). Motions are smooth random walks around a rest shape, in metres, with the region
+``tests/metrics/test_motion.py``). Motions are smooth random walks around a rest shape, in metres, with the region
 sizes of ``m3t.body.metric_sets`` (body 12 points, hands 21).
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ synthetic SMPL-X / FLAME stand-in files of :mod:`smplfx_fixtures`).
 
 The clip's 2D track comes from a real lexicon ``.pose`` file (the packaged fingerspelling letters), so it
 shows other motion than the tracker outputs: the test checks where each fit started from and that the
-records say so, not that the fit lands on the trackers' ground truth (``test_fusion_clip`` measures that).
+records say so, not that the fit lands on the trackers' ground truth (``tests/fitting/test_fusion.py`` measures that).
 """
 from __future__ import annotations
 

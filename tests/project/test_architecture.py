@@ -59,7 +59,8 @@ def layer_of(module: str) -> int:
                     and len(prefix) > len(best):
                 best, rank = prefix, i
     if rank < 0:
-        raise AssertionError(f"module {module} is in no layer of tests/test_architecture.py; add its package there")
+        raise AssertionError(f"module {module} is in no layer of tests/project/test_architecture.py; "
+                             "add its package there")
     return rank
 
 

@@ -29,7 +29,7 @@
    URLs, and every ``dashboard_address`` literal (distributed binds ``":0"`` on all interfaces).
 4. Paths from params values: the soke_smplx annotation CSV and the slt_pickle files are refused, unopened, when
    they lead outside the corpus root (``..``, absolute, a symbolic link), like every manifest row
-   (``m3t.corpora.base.media_path_problem``; the per-adapter row tests are in tests/test_corpora_real.py).
+   (``m3t.corpora.base.media_path_problem``; the per-adapter row tests are in tests/corpora/test_readers.py).
 """
 from __future__ import annotations
 

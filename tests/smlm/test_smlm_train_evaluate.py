@@ -259,7 +259,7 @@ def test_evaluator_generates_every_clip_in_batches_and_shows_progress_only_when_
 def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evaluator, smlm_parts, monkeypatch):
     """The evaluator's part of scoring: what it hands the motion scorer (decoded predictions, the rest pose for an
     empty one, groups, identities) and the rows and summary it builds from the scores (the scorer's own numbers
-    are pinned in test_scorer.py; here a recording stand-in returns known ones)."""
+    are pinned in tests/metrics/test_scorer.py; here a recording stand-in returns known ones)."""
     from m3t.metrics.scorer import ClipScore, MotionScores
     from m3t.metrics.text import translation_metrics_by_language
     from m3t.smlm.evaluate import SELECTION_METRIC
