@@ -1,15 +1,8 @@
 """MLflow through m3t.experiment: absolute URIs, a logged run comes back with its metrics and artifacts."""
 from __future__ import annotations
 
-from m3t.experiment import (
-    EXPERIMENT_KIND,
-    ExperimentConfig,
-    absolute_uri,
-    extra_tags,
-    fetch_runs,
-    metric_histories,
-    start_run,
-)
+from m3t.experiment import (EXPERIMENT_KIND, ExperimentConfig, absolute_uri, extra_tags, fetch_runs, metric_histories,
+                            start_run)
 
 
 def test_absolute_uri(tmp_path):

@@ -9,6 +9,7 @@ import collections
 
 import pytest
 import torch
+
 from malformed_cases import CASES, CLEAR, QUARANTINED, READ, classify
 
 

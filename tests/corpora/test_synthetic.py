@@ -8,12 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from m3t.corpora.synthetic import (
-    SyntheticCorpus,
-    SyntheticCorpusConfig,
-    generate_corpus,
-    write_corpus,
-)
+from m3t.corpora.synthetic import SyntheticCorpus, SyntheticCorpusConfig, generate_corpus, write_corpus
 from m3t.corpora.synthetic_lexicon import CONCEPTS, build_lexicon, make_sentence
 
 CFG = SyntheticCorpusConfig(num_signs=10, confusing_pairs=2, num_signers=2, sentences_per_language=3,

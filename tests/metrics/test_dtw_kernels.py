@@ -17,12 +17,7 @@ import torch
 import m3t.metrics
 from m3t.metrics import kernels
 from m3t.metrics.dtw import accumulate, dtw_batch, jpe_distance_matrix
-from m3t.metrics.motion import (
-    MotionMetricsConfig,
-    _batched_pa,
-    _validated,
-    evaluate_pairs,
-)
+from m3t.metrics.motion import MotionMetricsConfig, _batched_pa, _validated, evaluate_pairs
 from m3t.metrics.procrustes import pa_distance_matrices, pa_distance_matrix
 from m3t.runtime import jit
 

@@ -28,12 +28,7 @@ from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs
 from m3t.metrics.procrustes import pa_distance_matrix, similarity_transform
 from m3t.metrics.scorer import MotionPair, MotionScorer
-from m3t.metrics.soke import (
-    SMPLX_VERTEX_JOINTS,
-    SOKE_ZEROED_JOINTS,
-    SokeModeError,
-    zero_soke_joints,
-)
+from m3t.metrics.soke import SMPLX_VERTEX_JOINTS, SOKE_ZEROED_JOINTS, SokeModeError, zero_soke_joints
 
 SOKE = MotionMetricsConfig(mode="soke_exact")
 SOKE_UPPER_BODY = [12, 16, 17, 18, 19, 20, 21, 59, 58, 57, 56, 55]  # joint_idx[joint_part['upper_body']]

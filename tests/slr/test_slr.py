@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 from m3t.body.protocol import STREAM_ORDER
 from m3t.corpora.clip import Clip
@@ -23,7 +22,7 @@ from m3t.experiment import RunRecord
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import write_shard
 from m3t.shards.schema import FittedClip
-from m3t.slr.checkpoint import ProbeMeta, load_slr
+from m3t.slr.checkpoint import load_slr
 from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig, TrimConfig
 from m3t.slr.evaluate import bootstrap_ci, evaluate_logits
 from m3t.slr.features import FrozenEncoders, build_examples, variant_streams
@@ -31,11 +30,13 @@ from m3t.slr.model import ProbeDims, SLRProbe, count_parameters
 from m3t.slr.pipeline import run_evaluate_slr, run_train_slr
 from m3t.slr.table import recognition_table, table_markdown
 from m3t.slr.train import collate, train_slr, validation_metrics
+from m3t.slr.checkpoint import ProbeMeta
 from m3t.slr.trim import ClipTooShortError, HandActivityProbe, Trimmer, active_window
 from m3t.tokenizers.checkpoint import save_tokenizer
 from m3t.tokenizers.config import TokenizerConfig
 from m3t.tokenizers.data import GROUPS, clip_sequences, normalisation
 from m3t.tokenizers.vae import MotionTokenizer
+from float_order import assert_close_json, assert_close_numbers, assert_close_weights
 
 TINY_PROBE = SLRConfig(layers=1, heads=2, ffn_mult=2, dropout=0.0, max_steps=32,
                        trim=TrimConfig(margin=1, min_frames=8))

@@ -5,13 +5,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from test_slr import TINY_PROBE, TINY_TRAIN, corpus, data, tokenizers  # noqa: F401 - fixtures
-
 from m3t.body.config import BodyConfig
 from m3t.experiment import ExperimentConfig, fetch_runs
 from m3t.slr.config import SLREvaluateConfig
 from m3t.slr.pipeline import evaluate_and_log, train_and_log
 from m3t.slr.table import recognition_table
+from test_slr import TINY_PROBE, TINY_TRAIN, corpus, data, tokenizers  # noqa: F401 - fixtures
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -10,29 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from precision_steps import bf16_and_fp32_steps
 
 from m3t.corpora.clip import Clip
 from m3t.runtime import DistributedContext
 from m3t.shards.tokens import TokenClip, TokenInfo, TokenShard
 from m3t.smlm.checkpoint import load_smlm, save_smlm
-from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
-from m3t.smlm.data import (
-    IGNORE,
-    Example,
-    examples_from_shard,
-    production_batch,
-    translation_batch,
-)
+from m3t.smlm.data import IGNORE, Example, examples_from_shard, production_batch, translation_batch
 from m3t.smlm.generate import generate_motion, translate
+from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.train import run_key, train_smlm, train_step
-from m3t.smlm.vocab import (
-    MOTION_STREAMS,
-    SignVocabulary,
-    VocabularyError,
-    build_vocabulary,
-)
+from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary, VocabularyError, build_vocabulary
+from precision_steps import bf16_and_fp32_steps
 
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}
 SENTENCES = {

@@ -20,13 +20,7 @@ from m3t.smlm.config import SMLMConfig
 from m3t.smlm.data import Example, production_batch, translation_batch
 from m3t.smlm.model import HEADS, SignMotionLM, SMLMDims, load_backbone
 from m3t.smlm.pipeline import vocabulary_for
-from m3t.smlm.vocab import (
-    MOTION_STREAMS,
-    PROMPT_MODALITIES,
-    SignVocabulary,
-    VocabularyError,
-    build_vocabulary,
-)
+from m3t.smlm.vocab import MOTION_STREAMS, PROMPT_MODALITIES, SignVocabulary, VocabularyError, build_vocabulary
 
 ROOT = Path(__file__).resolve().parents[2]
 CODEBOOKS = {"body": 100, "right_hand": 180, "left_hand": 180, "face": 216}

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from browser import BrowserError, browser, find_chromium, require_chromium  # noqa: F401 - browser: the fixture
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -4,8 +4,8 @@ load their metadata, and the run picker compares ticked runs. Screenshots land i
 from __future__ import annotations
 
 import pytest
-from browser import browser  # noqa: F401 - the fixture
 
+from browser import browser  # noqa: F401 - the fixture
 from dashboards.build import build_dashboard
 from dashboards.html import PAGES
 from m3t.experiment import fetch_runs

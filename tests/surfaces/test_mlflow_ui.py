@@ -27,15 +27,9 @@ import time
 import urllib.request
 
 import pytest
-from browser import browser, require_chromium  # noqa: F401 - browser: the fixture
 
-from m3t.experiment import (
-    RUNS_VIEW,
-    ExperimentConfig,
-    saved_view_tag,
-    start_run,
-    ui_link,
-)
+from browser import browser, require_chromium  # noqa: F401 - browser: the fixture
+from m3t.experiment import RUNS_VIEW, ExperimentConfig, saved_view_tag, start_run, ui_link
 
 # MLflow's UI asks who is signed in; a server without the basic-auth app answers 404 (MLflow's own request).
 MLFLOW_OWN_404 = "/ajax-api/2.0/mlflow/users/current: HTTP 404"

@@ -20,21 +20,8 @@ import pytest
 import yaml
 
 from flows.cli import main
-from flows.services import (
-    Running,
-    Service,
-    ServiceError,
-    ServicesConfig,
-    down,
-    is_running,
-    plan,
-    port_free,
-    processes,
-    read_state,
-    start,
-    stop,
-    up,
-)
+from flows.services import (Running, Service, ServiceError, ServicesConfig, down, is_running, plan, port_free,
+                            processes, read_state, start, stop, up)
 
 ROOT = Path(__file__).resolve().parents[2]
 PROC = Path("/proc/self").is_dir()

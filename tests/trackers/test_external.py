@@ -13,23 +13,10 @@ from fusion_fixtures import T, rot_err_deg, write_nlf, write_pixel3dmm, write_wi
 from smplfx_fixtures import front_camera_fx
 
 from m3t.body.smplfx_build import SMPLX_JOINTS
-from m3t.fitting.config import FusionConfig
 from m3t.fitting.fit import FittingConfig
-from m3t.fitting.fusion import (
-    HELD,
-    INTERPOLATED,
-    TrackerStream,
-    fuse,
-    fuse_trackers,
-    refine,
-)
-from m3t.trackers.external import (
-    TrackerFileError,
-    load_tracker_file,
-    read_nlf,
-    read_pixel3dmm,
-    read_wilor,
-)
+from m3t.fitting.config import FusionConfig
+from m3t.fitting.fusion import HELD, INTERPOLATED, TrackerStream, fuse, fuse_trackers, refine
+from m3t.trackers.external import TrackerFileError, load_tracker_file, read_nlf, read_pixel3dmm, read_wilor
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 
 
