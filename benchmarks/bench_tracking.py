@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "trackers"))  # test_tracking_real
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from m3t.body.factory import BodyConfig, load_body_model  # noqa: E402

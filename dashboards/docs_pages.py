@@ -6,7 +6,7 @@ Writes ``results/embedded.md`` (what the embedded ``dvc repro`` measured: fittin
 back-translation, SGSA / PT, the recognition probe), ``results/claims.md`` (the claims studies' verdicts with their
 intervals and the seed-half check), each naming the commit of ``dvc.lock`` its figures come from, and
 ``index.md`` (the README with its links made relative to ``docs/``), so no figure and no front-page text is typed
-twice. ``tests/test_docs.py`` regenerates the pages and fails when the committed ones differ: after a
+twice. ``tests/project/test_docs.py`` regenerates the pages and fails when the committed ones differ: after a
 ``dvc repro`` or a study that changes a metrics file, or an edit of the README, rerun this command.
 """
 from __future__ import annotations

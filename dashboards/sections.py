@@ -210,7 +210,7 @@ def repeatability(path: Path) -> str:
             f"({result.get('cpu_count', '?')} cores): with the machine's own arithmetic and with the pinned one "
             f"(M3T_REPRODUCIBLE=1, {result.get('cost', float('nan')):.2f}x the time). Only the float order differs, "
             "so the digits the two share are those another machine can be expected to repeat. Under the mode every "
-            "digit repeated across thread counts and kernel settings on one machine (tests/test_arithmetic.py). Seeds "
+            "digit repeated across thread counts and kernel settings on one machine (tests/base/test_arithmetic.py). Seeds "
             "move the figures as much or more: see each claim's std over seeds.")
     return (f"<h2>Which digits repeat</h2><p class=note>{h.esc(note)}</p>"
             + h.table(["stage", "figure", "machine arithmetic", "pinned arithmetic", "digits that agree"], body,

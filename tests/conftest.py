@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -27,11 +28,19 @@ def body():
 
 
 @pytest.fixture(scope="session")
-def fx(tmp_path_factory):
-    """The SMPL-FX model built from the synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`)."""
-    from smplfx_fixtures import ensure_fixture_files, fixture_body
+def fx_files(tmp_path_factory):
+    """The synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`), written once per test run."""
+    from smplfx_fixtures import ensure_fixture_files
 
-    return fixture_body(ensure_fixture_files(tmp_path_factory))
+    return ensure_fixture_files(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def fx(fx_files):
+    """The SMPL-FX model built from the synthetic SMPL-X / FLAME stand-in files (:mod:`smplfx_fixtures`)."""
+    from smplfx_fixtures import fixture_body
+
+    return fixture_body(fx_files)
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +59,16 @@ def tiny_workspace(body, tmp_path_factory):
     return build_workspace(tmp_path_factory.mktemp("workspace"), body)
 
 
+@pytest.fixture(scope="module")
+def shards_dir(body, tmp_path_factory) -> Path:
+    """train / dev / test shards of smooth synthetic motion (3 .. 1 clips of 18 .. 41 frames), in the folder of
+    corpus ``synthetic`` under a shards root (``data.shards_root`` = its parent)."""
+    from builders import SPLITS
+    from tiny_pipeline import write_shards
+
+    return write_shards(tmp_path_factory.mktemp("shards") / "synthetic", body, SPLITS, text=lambda seed: "t")
+
+
 @pytest.fixture(autouse=True)
 def _torch_threads_restored():
     """A test that sets torch's thread count (for speed or determinism) does not change it for the tests after
@@ -61,7 +80,8 @@ def _torch_threads_restored():
     torch.set_num_threads(threads)
 
 
-# Markers of whole modules (registered in pyproject.toml, `--strict-markers`): what each module starts or runs.
+# Markers of whole modules, by basename (unique over tests/; registered in pyproject.toml, `--strict-markers`):
+# what each module starts or runs.
 # `pytest -m "not slow"` is the fast lane; single slow tests of otherwise fast modules carry @pytest.mark.slow.
 MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_services": ("slow", "services"),
@@ -69,7 +89,7 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_mlflow_ui": ("slow", "services", "browser"),
     "test_dashboard_browser": ("slow", "browser", "e2e"),
     "test_browser_driver": ("slow", "browser"),
-    "test_fit_dask": ("slow", "services"),
+    "test_cluster": ("slow", "services"),
     "test_pipeline": ("slow", "e2e"),
     "test_smlm_pipeline": ("slow", "e2e"),
     "test_sgsa_pipeline": ("slow", "e2e"),
@@ -80,8 +100,8 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_arithmetic": ("slow", "e2e"),
     "test_study": ("slow", "e2e"),
     "test_dashboard": ("slow", "e2e"),
-    "test_corpus": ("slow",),          # generates whole corpora
-    "test_corpus_design": ("slow",),   # generates the study corpus
+    "test_synthetic": ("slow",),       # generates whole corpora
+    "test_synthetic_design": ("slow",),  # generates the study corpus
     "test_fit_batches": ("slow",),     # fits signer batches to convergence
     "test_experiment": ("slow",),      # opens fresh MLflow stores
 }

@@ -11,7 +11,7 @@ breaks one thing in it and calls the reader a pipeline stage would call. :func:`
 - ``ACCEPTED-SILENTLY``: the reader returned as if nothing were wrong;
 - ``TRACEBACK``: another exception, or one whose message does not say which file and why.
 
-``tests/test_malformed_inputs.py`` runs every case; ``benchmarks/malformed_report.py`` writes the table.
+``tests/corpora/test_malformed_inputs.py`` runs every case; ``benchmarks/malformed_report.py`` writes the table.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The tiny pipeline's fit and tokenizer stages in one process, then a digest of every float they wrote: the
-subject of tests/test_arithmetic.py, run there as a subprocess under different arithmetic settings.
+subject of tests/base/test_arithmetic.py, run there as a subprocess under different arithmetic settings.
 
 ``python tests/reproducible_run.py OUT WORKERS`` generates the tiny synthetic corpus (4 clips) under OUT, fits it
 (``fit_corpus.workers`` = WORKERS), trains the three tokenizers (``tokenizer_train.group_workers`` = WORKERS) and

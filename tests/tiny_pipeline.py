@@ -32,7 +32,7 @@ def write_shards(folder: Path, body, splits: dict[str, int] = SPLITS,
                  text: Callable[[int], str] = lambda seed: f"sentence {seed % 3}") -> Path:
     """Fitted shards of smooth synthetic motion (clip ``c<seed>`` of 18 .. 41 frames, text ``text(seed)``), with
     and without a stored camera, ``splits[split]`` clips per split in ``folder`` (created); returns it."""
-    from test_fitting import front_camera, smooth_motion
+    from builders import front_camera, smooth_motion
 
     folder.mkdir(parents=True)
     seed = 0
