@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import shutil
 from pathlib import Path
 
 from dashboards import html as h
 from dashboards import sections
+from m3t.atomic import replace_dir
 from m3t.config import Params, load_params
 from m3t.experiment import fetch_runs
 
@@ -57,14 +57,7 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
         (tmp / name).write_text(h.page(name, title, body, generated, plots), encoding="utf-8")
     (tmp / "runs.json").write_text(json.dumps([{"run_id": r.run_id, "stage": r.stage, "status": r.status,
                                                  "tags": r.tags} for r in runs], indent=1), encoding="utf-8")
-    old = out.with_name(out.name + ".old")
-    if out.exists():
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old.exists():
-        shutil.rmtree(old)
+    replace_dir(tmp, out)
     return out / "index.html"
 
 

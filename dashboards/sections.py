@@ -19,10 +19,11 @@ from m3t.claims import claims_table, stability, stability_line
 from m3t.config import Params
 from m3t.experiment import ExperimentConfig, RunRecord, metric_histories, newest_finished
 from m3t.metrics.stats import agreeing_digits
+from m3t.reporting import fixed
 from m3t.sgsa.table import adjacency_table, cross_table, in_display_units, layers_table
 from m3t.slr.table import recognition_table
 from m3t.smlm.table import production_table
-from m3t.tokenizers.ablation import ablation_table, fmt_or_dash
+from m3t.tokenizers.ablation import ablation_table
 
 TRAIN_STAGES = ("train-tokenizers", "train-backtranslation", "train-smlm", "train-slr",
                 "train-backtranslation-skeleton", "train-sgsa")
@@ -239,7 +240,7 @@ def codebooks(runs: list[RunRecord], params: Params) -> str:
     # utilisation saturates when tokens barely outnumber codes: the columns beside it say how far it can be read
     stats = (("util %", "utilisation_pct", 1), ("perplexity / K", "perplexity_per_code", 2),
              ("count SD", "count_sd", 1), ("tokens / K", "tokens_per_code", 1))
-    rows = [[q.upper(), g] + [fmt_or_dash(r.metrics.get(f"{g}/{key}"), digits) for _, key, digits in stats]
+    rows = [[q.upper(), g] + [fixed(r.metrics.get(f"{g}/{key}"), digits) for _, key, digits in stats]
             for q, r in newest.items() for g in groups]
     out.append(h.table(["quantizer", "group"] + [name for name, _, _ in stats], rows, "codebook-stats",
                        "test split; a uniform code distribution has perplexity / K = 1, and at 10 tokens per code "

@@ -17,7 +17,6 @@ evaluated again whenever an N = inf evaluation ran.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
@@ -33,6 +32,7 @@ import yaml
 from m3t.atomic import write_json, write_text
 from m3t.claims import claims_markdown, write_claims
 from m3t.config import Params, load_params, merge, params_from_dict, preset_overlay, read_yaml
+from m3t.digest import chunks_digest
 from m3t.experiment import absolute_uri, fetch_runs, to_dict, tracking_uri
 
 SHARED = "shared"
@@ -266,11 +266,10 @@ def step_digest(step: Step, root: Path) -> str:
     """Digest of the step's params file, its argv and the stamps of the steps it reads from."""
     if not step.params.is_file():
         raise StudyError(f"{step.params}: the params file of step {step.name} is missing; plan the study again")
-    h = hashlib.sha256(step.params.read_bytes())
-    h.update("\0".join(step.argv).encode())
-    for name in sorted({*step.deps, *step.after}):
-        h.update(f"\0{name}={_read_marker(root, name).get('stamp', '-')}".encode())
-    return h.hexdigest()
+    chunks = [step.params.read_bytes(), "\0".join(step.argv).encode()]
+    chunks += [f"\0{name}={_read_marker(root, name).get('stamp', '-')}".encode()
+               for name in sorted({*step.deps, *step.after})]
+    return chunks_digest(chunks)
 
 
 def pending(steps: list[Step], root: Path) -> set[str]:

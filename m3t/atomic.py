@@ -14,6 +14,7 @@ For writers that want a path or a file object of their own (Parquet, ``np.savez`
 
 A disk that fills up mid-write raises an ``OSError`` (``ENOSPC``) naming the target; the temporary file is
 removed and the previous version stays. :func:`run_lock` keeps two runs of one job off the same outputs.
+Whole folders (a generated corpus, the dashboard site) are built aside and swapped in by :func:`replace_dir`.
 
 Outputs get the permissions a plain ``open(path, "w")`` gives a new file: 0666 less the process umask
 (0644 under the usual umask 022), also when they replace an older file.
@@ -128,6 +129,26 @@ def copy_file(source: str | os.PathLike, target: str | os.PathLike) -> Path:
     with atomic_path(target) as tmp:
         shutil.copyfile(source, tmp)
     return target
+
+
+def replace_dir(tmp: str | os.PathLike, dest: str | os.PathLike) -> Path:
+    """Swap the finished folder ``tmp`` in as ``dest`` (same file system), so a reader sees the old folder or the
+    new one, never a half-written one.
+
+    The old ``dest`` is first renamed to ``.<name>.old`` beside it (one left by a run killed mid-swap is removed
+    first), the new one is renamed into place, then the old one is removed: an interrupt there propagates with
+    the new ``dest`` already in place, and an old folder that cannot be removed is left for the next swap.
+    Returns ``dest``.
+    """
+    tmp, dest = Path(tmp), Path(dest)
+    old = dest.with_name(f".{dest.name}.old")
+    if dest.exists():
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(dest, old)
+    os.replace(tmp, dest)
+    shutil.rmtree(old, ignore_errors=True)
+    return dest
 
 
 def remove_stale_temps(path: str | os.PathLike) -> list[Path]:

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from m3t.dataclass_io import build_dataclass
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -32,13 +34,8 @@ class Camera:
         }
 
     @staticmethod
-    def from_dict(d: dict) -> "Camera":
-        return Camera(
-            fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
-            rotation=tuple(tuple(float(v) for v in row) for row in d["rotation"]),
-            translation=tuple(float(v) for v in d["translation"]),
-            width=int(d["width"]), height=int(d["height"]),
-        )
+    def from_dict(d: dict) -> Camera:
+        return build_dataclass(Camera, d, "camera", ignore_unknown=True)
 
 
 def project(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:

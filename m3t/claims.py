@@ -17,7 +17,6 @@ Axis legend: R seeds, C clips.
 from __future__ import annotations
 
 import csv
-import math
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import numpy as np
 from m3t.atomic import write_json, write_text
 from m3t.experiment import RunRecord, newest_finished
 from m3t.metrics.stats import INCONCLUSIVE, paired, verdict_better, verdict_within
+from m3t.reporting import markdown_table, significant
 
 MOTION_DEFINITION = "SOKE DTW (raw cost over aligned frames, m)"
 TEXT_DEFINITION = "SL-T (ROUGE-L beta 1.2, per sentence; Chinese per character)"
@@ -423,33 +423,40 @@ def claims_table(records: list[RunRecord], min_seeds: int = 3, claims: tuple[Cla
     return rows
 
 
-def _fmt(value: float) -> str:
-    if value is None or not math.isfinite(value):
-        return "-"
-    return f"{value:.3g}" if abs(value) < 100 else f"{value:.0f}"
+def _fmt(value: float | None) -> str:
+    return significant(value, whole_from=100)
+
+
+def means_cell(row: dict, fmt: Callable[[float], str], fmt_sd: Callable[[float], str]) -> str:
+    """A judged row's ``A mean +- SD -> B mean +- SD``, means by ``fmt`` and SDs by ``fmt_sd``."""
+    return (f"{row['a']} {fmt(row['mean_a'])} +- {fmt_sd(row['std_a'])} -> {row['b']} {fmt(row['mean_b'])} +- "
+            f"{fmt_sd(row['std_b'])}")
+
+
+def interval_cell(row: dict, fmt: Callable[[float], str]) -> str:
+    """A judged row's ``value [low, high]`` by ``fmt``, then its equivalence band when the claim has one."""
+    low, high = row["interval95"]
+    band = f" (band {row['band'][0]:g} +- {row['band'][1]:g})" if row.get("band") else ""
+    return f"{fmt(row['value'])} [{fmt(low)}, {fmt(high)}]{band}"
 
 
 def claims_markdown(rows: list[dict], min_seeds: int) -> str:
-    lines = [f"Claims of M3T and SGSA on this platform's runs. Ours: A -> B as mean +- std over seeds; the 95 % "
+    intro = (f"Claims of M3T and SGSA on this platform's runs. Ours: A -> B as mean +- std over seeds; the 95 % "
              f"interval is a hierarchical bootstrap over training seeds and test clips (over seeds for codebook "
-             f"statistics), so it includes how much a retrained model moves. Verdicts need >= {min_seeds} seeds. Metric definitions in the metric column.", "",
-             "| claim | source | paper | metric | ours: A -> B | compared [95 % interval] | verdict | seeds | runs |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"statistics), so it includes how much a retrained model moves. Verdicts need >= {min_seeds} seeds. "
+             "Metric definitions in the metric column.")
+    body = []
     for r in rows:
         if r["verdict"] == "not run":
-            lines.append(f"| {r['claim']} | {r['source']} | {r['paper']} | {r['metric']} | - | - | not run: "
-                         f"{r['note']} | 0 | - |")
+            body.append([r["claim"], r["source"], r["paper"], r["metric"], "-", "-", f"not run: {r['note']}", 0, "-"])
             continue
-        ours = (f"{r['a']} {_fmt(r['mean_a'])} +- {_fmt(r['std_a'])} -> {r['b']} {_fmt(r['mean_b'])} +- "
-                f"{_fmt(r['std_b'])}")
-        low, high = r["interval95"]
-        band = f" (band {r['band'][0]:g} +- {r['band'][1]:g})" if r.get("band") else ""
         runs = ", ".join(sorted({i[:8] for i in r["runs_a"] + r["runs_b"]}))
         verdict = r["verdict"] + (f" ({r['note']})" if r["note"] else "")
-        lines.append(f"| {r['claim']} | {r['source']} | {r['paper']} | {r['metric']} | {ours} | {r['compared']} "
-                     f"{_fmt(r['value'])} [{_fmt(low)}, {_fmt(high)}]{band} | {verdict} | {len(r['seeds'])} | {runs} |")
-    lines += ["", stability_line(stability(rows))]
-    return "\n".join(lines) + "\n"
+        body.append([r["claim"], r["source"], r["paper"], r["metric"], means_cell(r, _fmt, _fmt),
+                     f"{r['compared']} {interval_cell(r, _fmt)}", verdict, len(r["seeds"]), runs])
+    table = markdown_table(["claim", "source", "paper", "metric", "ours: A -> B", "compared [95 % interval]", "verdict",
+                            "seeds", "runs"], body)
+    return "\n".join([intro, "", table, "", stability_line(stability(rows))]) + "\n"
 
 
 def write_claims(records: list[RunRecord], out_dir: str | Path, min_seeds: int = 3) -> list[dict]:

@@ -7,12 +7,10 @@ what is allowed. Components receive only their own section (``params.fitting``),
 """
 from __future__ import annotations
 
-import dataclasses
-import types
 import typing
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin
+from typing import Any
 
 import yaml
 
@@ -20,6 +18,7 @@ from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTra
 from m3t.body.config import BodyConfig
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
 from m3t.corpora.config import SyntheticCorpusConfig
+from m3t.dataclass_io import build_dataclass, coerce
 from m3t.experiment import ExperimentConfig
 from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
 from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
@@ -79,80 +78,9 @@ _HINTS = typing.get_type_hints(Params)
 SECTIONS: dict[str, Any] = {f.name: _HINTS[f.name] for f in fields(Params)}  # section -> its config class
 
 
-def _type_name(tp: Any) -> str:
-    if get_origin(tp) is Literal:
-        return "one of " + ", ".join(repr(a) for a in get_args(tp))
-    return getattr(tp, "__name__", str(tp))
-
-
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check ``value`` against the annotation ``tp``; return it converted (lists -> tuples, int -> float)."""
-    origin = get_origin(tp)
-    if tp is Any:  # only adapter options: checked against the adapter's own dataclass (_check_corpora)
-        return value
-    if dataclasses.is_dataclass(tp):
-        return build_section(tp, value, where)
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__} {value!r}")
-        key_tp, value_tp = get_args(tp)
-        return {_coerce(k, key_tp, f"{where} key {k!r}"): _coerce(v, value_tp, f"{where}.{k}") for k, v in value.items()}
-    if origin is Literal:
-        if value not in get_args(tp):
-            raise ConfigError(f"{where}: {value!r} is not allowed; expected {_type_name(tp)}")
-        return value
-    if origin in (typing.Union, types.UnionType):
-        args = get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        for arg in (a for a in args if a is not type(None)):
-            try:
-                return _coerce(value, arg, where)
-            except ConfigError:
-                continue
-        raise ConfigError(f"{where}: {value!r} matches none of {[_type_name(a) for a in args]}")
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {type(value).__name__} {value!r}")
-        args = get_args(tp)
-        item_tp = args[0] if len(args) == 2 and args[1] is Ellipsis else None
-        if item_tp is None and len(args) != len(value):
-            raise ConfigError(f"{where}: expected {len(args)} items, got {len(value)}")
-        return tuple(
-            _coerce(v, item_tp if item_tp is not None else args[i], f"{where}[{i}]") for i, v in enumerate(value)
-        )
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {type(value).__name__} {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {type(value).__name__} {value!r}")
-        return value
-    if tp in (str, bool):
-        if not isinstance(value, tp):
-            raise ConfigError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported annotation {tp!r}")  # a bug in a config class, not in the file
-
-
 def build_section(cls: type, values: dict | None, section: str) -> Any:
     """Build one section's dataclass from a mapping, rejecting unknown keys and wrong types."""
-    values = values or {}
-    if not isinstance(values, dict):
-        raise ConfigError(f"{section}: expected a mapping of keys, got {type(values).__name__}")
-    hints = typing.get_type_hints(cls)
-    allowed = [f.name for f in fields(cls)]
-    unknown = sorted(set(values) - set(allowed))
-    if unknown:
-        raise ConfigError(f"unknown key(s) {', '.join(f'{section}.{k}' for k in unknown)}; allowed keys in '{section}': {', '.join(allowed)}")
-    kwargs = {k: _coerce(v, hints[k], f"{section}.{k}") for k, v in values.items()}
-    try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except ValueError as exc:  # a section's own consistency check (__post_init__)
-        raise ConfigError(f"{section}: {exc}") from exc
+    return build_dataclass(cls, values, section, error=ConfigError)
 
 
 def _check_corpora(raw: dict) -> dict:
@@ -218,7 +146,7 @@ def params_from_dict(raw: dict) -> Params:
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}; allowed sections: {', '.join(SECTIONS)}")
     raw = {**raw, "corpora": _check_corpora(raw)}
-    return Params(**{name: _coerce(raw.get(name) or {}, _HINTS[name], name) for name in SECTIONS})
+    return Params(**{name: coerce(raw.get(name) or {}, _HINTS[name], name, ConfigError) for name in SECTIONS})
 
 
 def load_params(path: str | Path = "params.yaml", preset: str = "default", overrides: dict | None = None) -> Params:

@@ -1,28 +1,26 @@
-"""Training mechanics shared by every trainer (tokenizers, SMLM): the warm-up + cosine LR schedule, one
-optimiser step, the self-describing checkpoint file, and the epoch tail: evaluation when due, selection of
-the ``best`` checkpoint by a named metric, the resumable ``last`` checkpoint (optimizer, scheduler, RNG),
-and rank-0-only logging. A trainer keeps only what is its own: the model, its batches and its loss.
+"""Training mechanics shared by every trainer (tokenizers, SMLM, SLR, back-translation, SGSA): the warm-up +
+cosine LR schedule, one optimiser step, the self-describing checkpoint file and its record, the epoch loop, and
+the epoch tail: evaluation when due, selection of the ``best`` checkpoint by a named metric, the resumable
+``last`` checkpoint (optimizer, scheduler, RNG), and rank-0-only logging. A trainer keeps only what is its own:
+the model, its batches and its loss.
 
-A trainer's loop, with ``tail = EpochTail(...)`` (and ``tail.resume(state)`` when a ``last`` exists)::
+A trainer, with ``tail = EpochTail(...)`` (and ``tail.resume_saved(...)`` to continue a ``last``)::
 
-    for epoch in tail.remaining():
-        for batch in batches(epoch):
-            stats = train_step(model, batch, optim, scheduler)   # ends in optimizer_step(loss, ...)
-            tail.step += 1
-        tail.end_epoch(epoch, {"train_loss": mean_loss})
+    device = start_training(cfg.device, cfg.seed)
+    ...  # model, optimiser, schedule, tail
+    run_epochs(tail, model, lambda epoch: batches(epoch),
+               lambda batch: train_step(model, batch, optim, scheduler), desc="name")  # ends in optimizer_step
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import random
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Literal, Self, Sequence
 
 import numpy as np
 import torch
@@ -30,6 +28,10 @@ import torch
 from m3t.arithmetic import cache_parts
 
 from m3t.atomic import atomic_path, remove_stale_temps, run_lock
+from m3t.digest import bytes_digest, json_digest
+
+if TYPE_CHECKING:
+    from m3t.runtime import DistributedContext
 
 
 # ---- schedule and step ----------------------------------------------------------------------------------
@@ -95,24 +97,49 @@ def run_digest(*parts: Any) -> str:
     """16-hex digest naming a resumable run: what its ``last`` checkpoint must agree on to be continued (the
     trainer's version string, model and training settings, vocabularies, data version). ``parts`` are
     JSON-dumped with sorted keys; bytes count by their SHA-256, anything else unknown to JSON by ``str``."""
-    digest = lambda v: hashlib.sha256(v).hexdigest() if isinstance(v, bytes) else str(v)  # noqa: E731
-    text = json.dumps([*parts, *cache_parts()], sort_keys=True, default=digest)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return json_digest([*parts, *cache_parts()], length=16,
+                       default=lambda v: bytes_digest(v) if isinstance(v, bytes) else str(v))
+
+
+@dataclass(frozen=True, kw_only=True)
+class CheckpointRecord:
+    """Where a checkpoint stands in its run, stored after its weights: ``epoch``, ``step`` (optimiser steps so
+    far), ``data_version``, ``metrics`` (the epoch's record), ``train_config`` (the training settings) and, in
+    a resumable ``last`` only, ``train_state``. A family's loaded checkpoint extends it with its model and what
+    describes it (``LoadedSMLM(CheckpointRecord)``), built by :meth:`read`."""
+
+    epoch: int
+    step: int
+    data_version: str
+    metrics: dict[str, float]
+    train_config: dict = field(default_factory=dict)
+    train_state: dict[str, Any] | None = None
+
+    def fields(self) -> dict[str, Any]:
+        """The record as a checkpoint stores it, in file order (``train_state`` only when there is one)."""
+        out = {"epoch": int(self.epoch), "step": int(self.step), "data_version": self.data_version,
+               "metrics": {k: float(v) for k, v in self.metrics.items()}, "train_config": dict(self.train_config)}
+        if self.train_state is not None:
+            out["train_state"] = self.train_state
+        return out
+
+    @classmethod
+    def read(cls, payload: dict[str, Any], **own: Any) -> Self:
+        """``cls`` of a checkpoint's ``payload``: its record plus ``own``, the fields a family's subclass adds."""
+        return cls(**own, epoch=payload["epoch"], step=payload["step"], data_version=payload["data_version"],
+                   metrics=dict(payload["metrics"]), train_config=dict(payload.get("train_config", {})),
+                   train_state=payload.get("train_state"))
 
 
 def checkpoint_payload(fmt: str, model: torch.nn.Module, epoch: int, step: int, data_version: str,
                        metrics: dict[str, float], train_config: dict | None = None,
                        train_state: dict[str, Any] | None = None, **described: Any) -> dict[str, Any]:
     """The fields every self-describing checkpoint has: ``format``, what rebuilds the model (``described``:
-    config, dims, vocabularies, ...), the weights on the CPU, ``epoch``, ``step``, ``data_version``,
-    ``metrics``, ``train_config`` and, in a resumable ``last`` only, ``train_state``."""
-    payload = {"format": fmt, **described,
-               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-               "epoch": int(epoch), "step": int(step), "data_version": data_version,
-               "metrics": {k: float(v) for k, v in metrics.items()}, "train_config": dict(train_config or {})}
-    if train_state is not None:
-        payload["train_state"] = train_state
-    return payload
+    config, dims, vocabularies, ...), the weights on the CPU, then the :class:`CheckpointRecord`."""
+    record = CheckpointRecord(epoch=epoch, step=step, data_version=data_version, metrics=metrics,
+                              train_config=train_config or {}, train_state=train_state)
+    return {"format": fmt, **described, "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+            **record.fields()}
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
@@ -328,6 +355,60 @@ class EpochTail:
         if self.on_epoch is not None:
             self.on_epoch(record, self.epoch)
         return record
+
+
+# ---- the trainers' preamble and epoch loop -----------------------------------------------------------------
+def start_training(device: str, seed: int, dist_ctx: DistributedContext | None = None) -> torch.device:
+    """The device a trainer runs on (the rank's own under DDP, else :func:`m3t.runtime.choose_device`), with
+    torch's generator then seeded by ``seed``: the model's initial weights are its next draws."""
+    from m3t.runtime import choose_device
+
+    chosen = dist_ctx.device if dist_ctx is not None and dist_ctx.world_size > 1 else choose_device(device)
+    torch.manual_seed(seed)
+    return chosen
+
+
+def scalar_settings(cfg: Any) -> dict[str, bool | int | float | str]:
+    """The scalar fields of a training config dataclass: the ``train_config`` its checkpoints store."""
+    return {k: v for k, v in asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+
+
+def epoch_batches(samples: Sequence[Any], batch_size: int, seed: int, epoch: int) -> Iterator[list[Any]]:
+    """The batches of one epoch, shuffled by (seed, epoch): the same on a resumed run."""
+    order = np.random.default_rng([seed, epoch]).permutation(len(samples))
+    for i in range(0, len(order), batch_size):
+        yield [samples[j] for j in order[i: i + batch_size]]
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values))
+
+
+def run_epochs(tail: EpochTail, model: torch.nn.Module, batches: Callable[[int], Iterable[Any]],
+               train_step: Callable[[Any], dict[str, float]], desc: str, progress: bool = True,
+               stop_after_epochs: int | None = None, average: Callable[[list[float]], float] = _mean,
+               before_epoch: Callable[[int], None] | None = None,
+               after_batches: Callable[[], None] | None = None) -> None:
+    """The epoch loop: for each epoch :meth:`EpochTail.remaining`, ``model`` in training mode,
+    ``before_epoch(epoch)``, ``train_step(batch)`` (one optimiser step, counted in ``tail.step``) on each of
+    ``batches(epoch)``, ``after_batches()``, then :meth:`EpochTail.end_epoch` with ``average`` (the mean) of
+    each statistic the steps returned as ``train_<name>``. A progress bar ``desc`` on rank 0 unless not
+    ``progress``."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(tail.remaining(stop_after_epochs), desc=desc, unit="epoch", disable=not progress or not tail.is_main)
+    for epoch in bar:
+        model.train()
+        if before_epoch is not None:
+            before_epoch(epoch)
+        stats: dict[str, list[float]] = {}
+        for batch in batches(epoch):
+            for k, v in train_step(batch).items():
+                stats.setdefault(k, []).append(v)
+            tail.step += 1
+        if after_batches is not None:
+            after_batches()
+        tail.end_epoch(epoch, {f"train_{k}": average(v) for k, v in stats.items()}, bar)
 
 
 # ---- independent trainings in worker processes ------------------------------------------------------------

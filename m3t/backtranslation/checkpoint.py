@@ -16,8 +16,10 @@ import torch
 from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.data import InputSpec
 from m3t.backtranslation.model import BackTranslationDims, SignToText
-from m3t.backtranslation.text import TextProcessor, Vocabulary
-from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.backtranslation.text import TextProcessor
+from m3t.dataclass_io import build_dataclass
+from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.vocabulary import Vocabulary
 
 FORMAT = "m3t-backtranslation-v1"
 STAGE = "train-backtranslation"
@@ -25,7 +27,7 @@ SKELETON_STAGE = "train-backtranslation-skeleton"  # the judge of skeletal produ
 
 
 @dataclass(frozen=True)
-class LoadedBackTranslation:
+class LoadedBackTranslation(CheckpointRecord):
     model: SignToText
     language: str
     spec: InputSpec
@@ -33,12 +35,6 @@ class LoadedBackTranslation:
     text_vocab: Vocabulary
     gloss_vocab: Vocabulary | None
     gloss_source: str
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_config: dict
-    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
 
 
 def save_backtranslation(path: str | os.PathLike, model: SignToText, language: str, spec: InputSpec,
@@ -60,14 +56,13 @@ def save_backtranslation(path: str | os.PathLike, model: SignToText, language: s
 
 def load_backtranslation(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedBackTranslation:
     payload = read_checkpoint(path, FORMAT, "back-translation", STAGE, device)
-    raw = dict(payload["config"])
-    raw["languages"] = tuple(raw.get("languages", ()))
-    model = SignToText(BackTranslationConfig(**raw), BackTranslationDims(**payload["dims"]))
+    model = SignToText(build_dataclass(BackTranslationConfig, payload["config"], "config"),
+                       build_dataclass(BackTranslationDims, payload["dims"], "dims"))
     model.load_state_dict(payload["state_dict"])
     model.to(device).eval()
     gloss = payload["gloss_vocabulary"]
-    return LoadedBackTranslation(
-        model, payload["language"], InputSpec.from_dict(payload["input"]), TextProcessor(**payload["text"]),
-        Vocabulary.from_dict(payload["text_vocabulary"]), None if gloss is None else Vocabulary.from_dict(gloss),
-        payload["gloss_source"], payload["epoch"], payload["step"], payload["data_version"],
-        dict(payload["metrics"]), dict(payload.get("train_config", {})), payload.get("train_state"))
+    return LoadedBackTranslation.read(
+        payload, model=model, language=payload["language"], spec=InputSpec.from_dict(payload["input"]),
+        processor=build_dataclass(TextProcessor, payload["text"], "text"),
+        text_vocab=Vocabulary.from_dict(payload["text_vocabulary"]),
+        gloss_vocab=None if gloss is None else Vocabulary.from_dict(gloss), gloss_source=payload["gloss_source"])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,22 +24,14 @@ import torch
 
 from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.smplx240 import SIGNSPARK_STREAMS, SMPLX240_DIM, smplx240_index, to_smplx240
-from m3t.backtranslation.text import (
-    BOS,
-    EOS,
-    PAD,
-    PseudoGlosser,
-    TextProcessor,
-    Vocabulary,
-    annotated_gloss,
-    gloss_vocabulary,
-    text_vocabulary,
-)
+from m3t.backtranslation.text import PseudoGlosser, TextProcessor, annotated_gloss
 from m3t.body.protocol import STREAM_ORDER, ModalityLayout
 from m3t.body.skeleton import SkeletonGraph
 from m3t.corpora.clip import Clip
+from m3t.dataclass_io import build_dataclass
 from m3t.shards.schema import layout_from_json, layout_to_json
 from m3t.shards.skeletons import SKELETON_STREAM
+from m3t.vocabulary import BOS, EOS, PAD, Vocabulary, gloss_vocabulary, text_vocabulary
 
 IGNORE = -100  # target id the losses skip (padding)
 
@@ -99,8 +91,7 @@ class InputSpec:
 
     @classmethod
     def from_dict(cls, raw: dict) -> InputSpec:
-        return cls(raw["layout"], tuple((str(n), int(d)) for n, d in raw["streams"]), raw["source_layout"],
-                   raw.get("layout_name", "layout"))
+        return build_dataclass(cls, raw, "input", ignore_unknown=True)
 
     def describe(self) -> str:
         streams = " + ".join(f"{n} {d}" for n, d in self.streams)
@@ -243,13 +234,6 @@ def collate(samples: Sequence[Sample], vocab: Vocabulary) -> Batch:
         glosses[i, : len(s.gloss_ids)] = torch.tensor(s.gloss_ids, dtype=torch.long)
     lengths = torch.tensor([len(s.gloss_ids) for s in samples], dtype=torch.long)
     return Batch(frames, mask, text_in, text_out, glosses, lengths)
-
-
-def epoch_batches(samples: Sequence[Sample], batch_size: int, seed: int, epoch: int) -> Iterator[list[Sample]]:
-    """The batches of one epoch, shuffled by (seed, epoch): the same on a resumed run."""
-    order = np.random.default_rng([seed, epoch]).permutation(len(samples))
-    for i in range(0, len(order), batch_size):
-        yield [samples[j] for j in order[i: i + batch_size]]
 
 
 def feature_statistics(samples: Sequence[Sample]) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,8 @@ import torch
 
 from m3t.backtranslation.data import pad_frames
 from m3t.backtranslation.model import SignToText
-from m3t.backtranslation.text import BOS, EOS, TextProcessor, Vocabulary
+from m3t.backtranslation.text import TextProcessor
+from m3t.vocabulary import BOS, EOS, Vocabulary
 
 
 def _cut(ids: Sequence[int], eos: int) -> list[int]:

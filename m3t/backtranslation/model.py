@@ -12,13 +12,13 @@ Axis legend: B batch, T frames, D input dim, d model width, K text tokens, V tex
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from m3t.backtranslation.config import BackTranslationConfig
+from m3t.positional_encoding import sinusoid_table
 
 
 @dataclass(frozen=True)
@@ -34,16 +34,6 @@ class BackTranslationDims:
 class BackTranslationOutput:
     text_logits: torch.Tensor  # (B, K, V)
     gloss_logits: torch.Tensor | None  # (B, T, G) or None without a gloss head
-
-
-def sinusoid_table(length: int, width: int) -> torch.Tensor:
-    """(length, width) sinusoidal positions of Vaswani et al. (sin on even, cos on odd channels)."""
-    position = torch.arange(length, dtype=torch.float32)[:, None]
-    rate = torch.exp(torch.arange(0, width, 2, dtype=torch.float32) * (-math.log(10000.0) / width))
-    table = torch.zeros(length, width)
-    table[:, 0::2] = torch.sin(position * rate)
-    table[:, 1::2] = torch.cos(position * rate[: width // 2])
-    return table
 
 
 class SignToText(nn.Module):

@@ -20,8 +20,6 @@ production model's output goes through.
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import re
 from collections.abc import Callable, Mapping
@@ -41,6 +39,7 @@ from m3t.body.protocol import BodyModel
 from m3t.body.skeleton import SkeletonGraph
 from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.text import SLT_DEFINITION, slt_metrics_by_language, slt_scores, slt_unit
+from m3t.reporting import csv_text
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import production_data_version, read_production_split, shard_layout
 from m3t.shards.schema import FittedClip, layout_to_json
@@ -257,11 +256,7 @@ def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, 
 
 
 def per_clip_csv(rows: list[dict]) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=PER_CLIP_COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
+    return csv_text(rows, PER_CLIP_COLUMNS)
 
 
 def run_evaluate_backtranslation(model_cfg: BackTranslationConfig, data: DataConfig, split: str = "test",

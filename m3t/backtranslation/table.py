@@ -7,17 +7,12 @@ logs the same ``bt/slt/<language>/...`` metrics gets a row.
 """
 from __future__ import annotations
 
-import math
-
 from m3t.experiment import RunRecord, newest_finished, variant_of
 from m3t.metrics.text import SLT_DEFINITION
+from m3t.reporting import fixed, markdown_table
 
 GT_ROW = "GT motion (upper bound)"
 VARIANT_ORDER = ("production only", "production + translation")
-
-
-def _cell(value: float | None) -> str:
-    return "-" if value is None or math.isnan(value) else f"{value:.2f}"
 
 
 def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRecord]) -> str:
@@ -36,11 +31,9 @@ def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRec
         return ("no finished evaluate-backtranslation / evaluate-smlm runs with back-translation yet: "
                 "run `dvc repro evaluate-smlm`")
     languages = sorted({k.split("/")[0] for _, m in rows for k in m if k.endswith("/bleu4")})
-    header = "| motion | " + " | ".join(f"{lang} R | {lang} B4" for lang in languages) + " |"
-    lines = [f"Back-translation (text metrics: definition {SLT_DEFINITION!r}, SL-T: lower-cased whitespace tokens, "
-             "BLEU-4 unsmoothed, ROUGE-L beta 1.2, Chinese per character)", "", header,
-             "|" + "---|" * (1 + 2 * len(languages))]
-    for name, metrics in rows:
-        cells = [f"{_cell(metrics.get(f'{lang}/rouge_l'))} | {_cell(metrics.get(f'{lang}/bleu4'))}" for lang in languages]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    header = ["motion", *(f"{lang} {name}" for lang in languages for name in ("R", "B4"))]
+    body = [[name, *(fixed(metrics.get(f"{lang}/{key}"), 2) for lang in languages for key in ("rouge_l", "bleu4"))]
+            for name, metrics in rows]
+    title = (f"Back-translation (text metrics: definition {SLT_DEFINITION!r}, SL-T: lower-cased whitespace tokens, "
+             "BLEU-4 unsmoothed, ROUGE-L beta 1.2, Chinese per character)")
+    return "\n".join([title, "", markdown_table(header, body)])

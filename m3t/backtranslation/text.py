@@ -1,5 +1,5 @@
-"""Text side of back-translation: sentence tokenisation per language, word vocabularies built on the train split,
-and glosses for the CTC head (annotated, or pseudo-glosses for gloss-less corpora such as How2Sign).
+"""Text side of back-translation: sentence tokenisation per language (the word vocabularies are
+:mod:`m3t.vocabulary`'s), and glosses for the CTC head (annotated, or pseudo-glosses for gloss-less corpora such as How2Sign).
 
 Tokenisation (:class:`TextProcessor`, rule ``TEXT_RULE``) - the model is trained on, and references are scored as:
 
@@ -21,15 +21,12 @@ Other spoken languages keep every word.
 from __future__ import annotations
 
 import re
-from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from m3t.metrics.text import is_chinese, tokenize
 
 TEXT_RULE = "m3t-bt-text-v1"
-PAD, UNK, BOS, EOS = "<pad>", "<unk>", "<bos>", "<eos>"
-BLANK = "<blank>"  # CTC blank, id 0 of the gloss vocabulary
 SIGN2GPT_POS = ("NOUN", "NUM", "ADV", "PRON", "PROPN", "ADJ", "VERB")
 _WORD = re.compile(r"\w+(?:['\u2019\-.]\w+)*|[^\w\s]")
 
@@ -89,51 +86,6 @@ class TextProcessor:
     def reference(self, text: str) -> str:
         """A reference sentence as it is scored: tokenised and joined again."""
         return self.join(self.tokens(text))
-
-
-# ------------------------------------------------------------------------------------------- vocabularies
-class Vocabulary:
-    """Token <-> id; ``specials`` first (ids 0..), then the tokens in order of frequency, ties alphabetical."""
-
-    def __init__(self, tokens: Sequence[str], specials: Sequence[str]):
-        self.itos = list(specials) + [t for t in tokens if t not in specials]
-        self.stoi = {t: i for i, t in enumerate(self.itos)}
-        self.specials = tuple(specials)
-        if len(self.stoi) != len(self.itos):
-            raise ValueError("vocabulary has a duplicate token")
-
-    @classmethod
-    def build(cls, sentences: Iterable[Sequence[str]], specials: Sequence[str], min_frequency: int = 1) -> Vocabulary:
-        counts = Counter(t for s in sentences for t in s)
-        kept = sorted((t for t, c in counts.items() if c >= min_frequency), key=lambda t: (-counts[t], t))
-        return cls(kept, specials)
-
-    def __len__(self) -> int:
-        return len(self.itos)
-
-    def encode(self, tokens: Sequence[str]) -> list[int]:
-        unk = self.stoi.get(UNK, 0)
-        return [self.stoi.get(t, unk) for t in tokens]
-
-    def decode(self, ids: Iterable[int]) -> list[str]:
-        return [self.itos[i] for i in ids if self.itos[i] not in self.specials]
-
-    def to_dict(self) -> dict:
-        return {"specials": list(self.specials), "tokens": self.itos[len(self.specials):]}
-
-    @classmethod
-    def from_dict(cls, raw: dict) -> Vocabulary:
-        return cls(list(raw["tokens"]), list(raw["specials"]))
-
-
-def text_vocabulary(sentences: Iterable[Sequence[str]], min_frequency: int = 1) -> Vocabulary:
-    """Words of the train split; ids 0-3 are ``<pad> <unk> <bos> <eos>``."""
-    return Vocabulary.build(sentences, (PAD, UNK, BOS, EOS), min_frequency)
-
-
-def gloss_vocabulary(glosses: Iterable[Sequence[str]]) -> Vocabulary:
-    """Glosses of the train split; id 0 is the CTC blank, 1 ``<unk>``."""
-    return Vocabulary.build(glosses, (BLANK, UNK))
 
 
 # ----------------------------------------------------------------------------------------------- glosses

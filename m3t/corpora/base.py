@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 
 from m3t.body.model_files import SafeModelUnpickler
 from m3t.corpora.clip import Clip
+from m3t.dataclass_io import build_dataclass
 
 Check = Callable[[Path], "str | None"]  # media path -> quarantine reason, None when fine
 MEDIA_KINDS = ("video", "frames", "pose", "smplx_params", "flame_params", "keypoints", "spelled", "synthetic")
@@ -352,13 +353,12 @@ def adapter_class(name: str) -> type[CorpusAdapter]:
 def open_corpus(name: str, root: str | Path | None, **options: Any) -> CorpusAdapter:
     """The adapter for corpus ``name`` at ``root``; ``options`` are the fields of its option dataclass.
 
-    Lists from YAML become tuples where the option is a tuple. Unknown options raise ``ValueError`` naming the
-    allowed ones.
+    Options are type-checked (lists from YAML become tuples where the option is a tuple); unknown or wrongly
+    typed options raise ``ValueError`` naming the allowed ones or the option.
     """
     cls = adapter_class(name)
     fields = {f.name: f for f in dataclasses.fields(cls.config_type)}
     unknown = sorted(set(options) - set(fields))
     if unknown:
         raise ValueError(f"corpora.{name}: unknown options {unknown}; allowed: {', '.join(fields) or 'none'}")
-    options = {k: tuple(v) if isinstance(v, list) else v for k, v in options.items()}
-    return cls(root if root is not None else "", cls.config_type(**options))
+    return cls(root if root is not None else "", build_dataclass(cls.config_type, options, f"corpora.{name}.options"))

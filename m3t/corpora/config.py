@@ -1,6 +1,6 @@
 """Config of the embedded synthetic corpus generator (params.yaml ``synthetic_corpus``).
 
-The defaults give the small embedded corpus every README number was measured on. The ``study`` preset turns on
+The defaults give the small embedded corpus every embedded-default result was measured on. The ``study`` preset turns on
 the design options that make held-out tests honest (:mod:`m3t.corpora.synthetic` says how each is generated):
 ``sentence_split: held_out`` (no test sentence's concepts in train), ``held_out_signers``, a larger isolated test
 share (``isolated_splits``), ``face_model: natural`` and a long-tailed gloss frequency (``gloss_zipf``).

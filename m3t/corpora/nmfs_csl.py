@@ -39,7 +39,7 @@ from m3t.corpora.clip import Clip
 
 HINT = "Point the corpus root at the NMFs-CSL folder (the one holding dictionary.txt, train.txt, test.txt, video/)."
 SUBSET_HINT = ("NMFs-CSL's confusing / normal subsets are defined only by the official list; set option "
-               "corpora.nmfs_csl.confusing_list to that file (one confusing class index per line).")
+               "corpora.nmfs_csl.options.confusing_list to that file (one confusing class index per line).")
 
 
 @dataclass(frozen=True)

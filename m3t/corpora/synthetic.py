@@ -65,7 +65,6 @@ Axis legend: T frames, n bones of a stream, F facial actions.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import tempfile
 import zipfile
@@ -77,6 +76,7 @@ import numpy as np
 import roma
 import torch
 
+from m3t.atomic import replace_dir
 from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, mirror_rotations, sixd_to_matrix
 from m3t.camera import Camera, look_at
@@ -94,6 +94,7 @@ from m3t.corpora.synthetic_lexicon import (
     make_sentence,
     zipf_weights,
 )
+from m3t.dataclass_io import build_dataclass
 
 SENTENCE_SPLITS = ("cycle", "held_out")
 FACE_MODELS = ("lexical", "natural")
@@ -575,11 +576,7 @@ def write_corpus(clips: list[SyntheticClip], root: str | Path) -> Path:
                 fh.write(json.dumps(asdict(c.clip), ensure_ascii=False) + "\n")
                 np.savez(tmp / c.clip.media, identity=c.identity, camera=np.array(json.dumps(c.camera.as_dict())),
                          **{f"param__{k}": v for k, v in c.params.items()})
-        old = root.with_name(f".{root.name}.old")
-        if root.exists():
-            os.replace(root, old)
-        os.replace(tmp, root)
-        shutil.rmtree(old, ignore_errors=True)
+        replace_dir(tmp, root)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -612,7 +609,7 @@ class SyntheticCorpus:
         for n, line in enumerate(index.read_text(encoding="utf-8").splitlines(), 1):
             try:
                 d = json.loads(line)
-                out.append(Clip(**{**d, "extra": tuple(tuple(x) for x in d.get("extra", ()))}))
+                out.append(build_dataclass(Clip, d, "clip"))
             except (ValueError, TypeError) as exc:
                 raise ValueError(f"{index} line {n}: not a clip record ({exc})") from exc
         return out

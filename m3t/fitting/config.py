@@ -5,13 +5,12 @@ import them, so reading params.yaml never imports the fitting code.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 from typing import Literal
 
 from m3t.body.config import BodyConfig
 from m3t.corpora.base import CORPORA, CorpusSource
+from m3t.digest import json_digest
 from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 
 
@@ -86,4 +85,4 @@ class FitJob:
     fusion: FusionConfig = field(default_factory=FusionConfig)
 
     def key(self) -> str:
-        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:16]
+        return json_digest(dataclasses.asdict(self), length=16)

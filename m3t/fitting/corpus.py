@@ -28,7 +28,6 @@ writes the shards and reports.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import threading
 import time
@@ -47,6 +46,7 @@ from m3t.body.metric_sets import joints_for
 from m3t.body.protocol import BodyModel, ModalityLayout, as_tensors
 from m3t.corpora.base import CorpusAdapter, Listing, open_corpus
 from m3t.corpora.clip import Clip
+from m3t.digest import canonical_json, chunks_digest, file_digest, file_digest_bytes
 from m3t.fitting.config import FitCorpusConfig, FitJob  # noqa: F401 - FitCorpusConfig: the engine's config
 from m3t.fitting.evaluate import ground_truth_errors, procrustes_error_mm
 from m3t.fitting.fit import FitResult, fit_track, fit_tracks
@@ -80,15 +80,11 @@ NO_EXTERNAL = "rest pose: no NLF / WiLoR / Pixel3DMM outputs beside the media"
 
 
 def _digest(*parts: object) -> str:
-    h = hashlib.sha256()
+    """16-hex cache key of ``parts``: bytes as they are, anything else as sorted-key JSON, each followed by NUL."""
+    chunks: list[bytes] = []
     for part in (*parts, *cache_parts()):
-        h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
-        h.update(b"\0")
-    return h.hexdigest()[:16]
-
-
-def _file_digest(path: Path) -> bytes:
-    return hashlib.sha256(path.read_bytes()).digest()
+        chunks += [part if isinstance(part, bytes) else canonical_json(part), b"\0"]
+    return chunks_digest(chunks, length=16)
 
 
 # ------------------------------------------------------------------------------------------ listing
@@ -176,7 +172,7 @@ def track_clip(clip: Clip, ctx: FitContext) -> Path:
         media = root / clip.media
         if not media.exists():
             raise FileNotFoundError(f"media file {media} of clip {clip.id} is missing")
-        key = _digest(KEY_VERSION, _file_digest(media), ctx.job.tracker, ctx.body_key)
+        key = _digest(KEY_VERSION, file_digest_bytes(media), ctx.job.tracker, ctx.body_key)
     else:
         key = _digest(KEY_VERSION, media_key(clip, root, ctx.job.mediapipe))
     path = Path(ctx.job.run.cache_dir) / "tracks" / f"{clip.id.replace('/', '_')}-{key}.npz"
@@ -203,7 +199,7 @@ def external_outputs(clip: Clip, ctx: FitContext) -> TrackerOutputs | None:
 def fit_key(track_path: Path, outputs: TrackerOutputs | None, ctx: FitContext) -> str:
     """Content address of a fit: the track's bytes, the fitting config, the body model, and the external
     tracker outputs with the fusion settings when the clip has any (clips without keep their old key)."""
-    parts: list[object] = [KEY_VERSION, _file_digest(track_path), ctx.job.fitting, ctx.body_key]
+    parts: list[object] = [KEY_VERSION, file_digest_bytes(track_path), ctx.job.fitting, ctx.body_key]
     if outputs is not None and outputs.any():
         parts += [outputs.digest(), ctx.job.fusion]
     return _digest(*parts)
@@ -256,14 +252,14 @@ def _checksum_file(cached: Path) -> Path:
 
 def _vouch(cached: Path) -> None:
     """Write the SHA-256 of a cached track or part beside it, after the file itself: the digest vouches for it."""
-    write_text(_checksum_file(cached), hashlib.sha256(cached.read_bytes()).hexdigest())
+    write_text(_checksum_file(cached), file_digest(cached))
 
 
 def _cache_intact(cached: Path, read: Callable[[Path], object]) -> bool:
     """Whether a cached track or part file is the one its run wrote: its SHA-256 matches the digest written
     beside it (a flipped byte on disk is redone, never read). A file cached before digests existed is trusted
     once ``read`` reads it back, and gets its digest."""
-    digest = hashlib.sha256(cached.read_bytes()).hexdigest()
+    digest = file_digest(cached)
     checksum = _checksum_file(cached)
     if checksum.exists():
         return checksum.read_text().strip() == digest
@@ -387,7 +383,7 @@ def process_batch(clips: list[Clip], ctx: FitContext) -> list[ClipOutcome]:
             members.append((clip, track_path, outputs, start))
     if len(members) <= 1:
         return outcomes + [process_clip(m[0], ctx) for m in members]
-    key = _digest(KEY_VERSION, "signer batch", [_file_digest(m[1]) for m in members], ctx.job.fitting,
+    key = _digest(KEY_VERSION, "signer batch", [file_digest_bytes(m[1]) for m in members], ctx.job.fitting,
                   ctx.body_key, ctx.job.run.batch_frames)
     tracks = [load_track(m[1]) for m in members]
     fitted: list[FitResult] = []

@@ -14,11 +14,11 @@ is the sum of the clips' objectives, and the identity (the body shape) is one, s
 paper's static per-signer shape (with ``lbfgs_batched`` / ``lbfgs_lockstep``, one per clip unless given). :func:`fit_track` is the
 one-clip case.
 
-Three solvers (``fitting.solver``), each after a camera-only stage that places the body in the image using the
+Four solvers (``fitting.solver``), each after a camera-only stage that places the body in the image using the
 torso and head points:
 
-- ``lbfgs`` (default): L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
-- ``lbfgs_batched``: the ``lbfgs`` algorithm run for every clip of a batch on its own (its own optimiser,
+- ``lbfgs``: L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
+- ``lbfgs_batched`` (default): the ``lbfgs`` algorithm run for every clip of a batch on its own (its own optimiser,
   line searches, convergence test and identity), one objective evaluation serving them all
   (:func:`m3t.fitting.lbfgs.minimise_batched`): each clip fitted as its own fit would be, at a batch's speed;
 - ``lbfgs_lockstep``: a vectorised L-BFGS per clip with a backtracking line search, in lock-step over a batch

@@ -16,7 +16,6 @@ Axis legend: T frames, K landmarks.
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
 from collections import Counter
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from m3t.reporting import csv_text
 from m3t.trackers.track import Track, landmark_slices
 
 CONFIDENT = 0.5  # MediaPipe's own visibility threshold for "the landmark is in view"
@@ -139,15 +139,9 @@ def _finite_or_none(value: Any) -> Any:
 
 def write_quality(report: QualityReport, out_dir: str | Path, write_text) -> tuple[Path, Path]:
     """``quality.csv`` + ``quality.json`` in ``out_dir``, each written whole by ``write_text(path, text)``."""
-    import io
-
     out_dir = Path(out_dir)
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    for row in report.rows:
-        writer.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()})
-    write_text(out_dir / "quality.csv", buffer.getvalue())
+    rows = ({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()} for row in report.rows)
+    write_text(out_dir / "quality.csv", csv_text(rows, COLUMNS))
     summary = {k: _finite_or_none(v) for k, v in report.summary.items()}  # JSON has no NaN
     write_text(out_dir / "quality.json", json.dumps(summary, indent=2, sort_keys=True) + "\n")
     return out_dir / "quality.csv", out_dir / "quality.json"

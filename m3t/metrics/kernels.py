@@ -5,7 +5,7 @@ except, by default, the square root of each point distance (``root_precision``):
 
 - JPE cost: root-relative mean point distance (``jpe_distance_matrix``);
 - PA cost: similarity Procrustes of every prediction frame onto every ground-truth frame (Umeyama, unweighted),
-  solved by the same QCP as ``procrustes._rotation_quaternion`` (Horn's quaternion matrix, Newton on its
+  solved by the same QCP as ``m3t.body.similarity._rotation_quaternion`` (Horn's quaternion matrix, Newton on its
   characteristic quartic from the same upper bound, eigenvector from the adjugate, reflection impossible by
   construction); frame pairs the QCP flags ill-conditioned or off the largest root are re-solved by Jacobi's
   eigenvalue method on Horn's matrix (no LAPACK, so no scipy at run time), the role ``torch.linalg.svd`` plays
@@ -43,14 +43,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from m3t.metrics.dtw import DTWResult, _as_cost
-from m3t.metrics.procrustes import (
+from m3t.body.similarity import (
     EIGENPAIR_RESIDUAL,
     ILL_CONDITIONED,
     NEWTON_MAX_ITERATIONS,
     NEWTON_RESIDUAL,
     NEWTON_TOLERANCE,
 )
+from m3t.metrics.dtw import DTWResult, _as_cost
 from m3t.runtime import jit
 
 JACOBI_SWEEPS = 30  # cyclic sweeps of the 4x4 fallback; converges quadratically, ~6 suffice

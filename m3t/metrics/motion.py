@@ -13,7 +13,7 @@ arrays in metres, so no body model is needed here:
 
 Raw costs grow with sequence length (SOKE reports them so); the path-normalised ones compare across lengths.
 
-**Two backends** (:attr:`MotionMetricsConfig.backend`), the same numbers (``tests/test_dtw_kernels.py``: cost
+**Two backends** (:attr:`MotionMetricsConfig.backend`), the same numbers (``tests/metrics/test_dtw_kernels.py``: cost
 matrices to ~1e-15 on motion with ``root_precision="float64"``, 1e-6 on degenerate frames such as collinear
 points; identical paths; the float32 square root, the default in mode ``m3t``, moves costs by < 9e-8 relative).
 ``"numba"`` (the default) runs :mod:`m3t.metrics.kernels`: cost matrix, DP and backtrack fused per (pair,

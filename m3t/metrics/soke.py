@@ -96,7 +96,7 @@ def _check_smplfx(body: BodyModel) -> None:
             f"motion metric mode 'soke_exact' reproduces SOKE's SMPL-X evaluation and needs body.model: smplfx; "
             f"body model {body.name!r} has no SMPL-X pelvis, spine or vertex ids to root and measure by. SMPL-FX is "
             "built from the licensed SMPL-X and FLAME files (body.smplx_path, body.flame_path, "
-            "body.flame_correspondence_path; see the README section 'SMPL-FX'), or score with mode 'm3t'")
+            "body.flame_correspondence_path; see docs/body-models.md), or score with mode 'm3t'")
 
 
 def soke_keypoints(body: BodyModel) -> dict[str, Correspondence]:

@@ -14,11 +14,12 @@ from typing import Any
 
 import torch
 
-from m3t.backtranslation.text import Vocabulary
 from m3t.body.skeleton import SkeletonGraph, adjacency
+from m3t.dataclass_io import build_dataclass
 from m3t.sgsa.config import SGSAConfig
 from m3t.sgsa.model import SGSADims, SGSAProduction
-from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.vocabulary import Vocabulary
 
 FORMAT = "m3t-sgsa-v2"  # v2: both decoders pre-norm with a frame embedding and a final LayerNorm
 OLDER_FORMATS = ("m3t-sgsa-v1",)
@@ -26,17 +27,11 @@ STAGE = "train-sgsa"
 
 
 @dataclass(frozen=True)
-class LoadedSGSA:
+class LoadedSGSA(CheckpointRecord):
     model: SGSAProduction
     graph: SkeletonGraph
     text_vocab: Vocabulary
     gloss_vocab: Vocabulary | None
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_config: dict
-    train_state: dict[str, Any] | None = None
 
     @property
     def model_device(self) -> torch.device:
@@ -68,15 +63,13 @@ def load_sgsa(path: str | os.PathLike, device: str | torch.device = "cpu") -> Lo
             raise ValueError(f"{path}: an SGSA / PT checkpoint of an older decoder (post-norm layers fed raw frames, "
                              f"{FORMAT} expected); retrain it: `dvc repro {STAGE}`") from exc
         raise
-    cfg = SGSAConfig(**payload["config"])
+    cfg = build_dataclass(SGSAConfig, payload["config"], "config")
     graph = SkeletonGraph.from_dict(payload["graph"])
     text_vocab = Vocabulary.from_dict(payload["text_vocabulary"])
     gloss = payload["gloss_vocabulary"]
     gloss_vocab = None if gloss is None else Vocabulary.from_dict(gloss)
-    model = SGSAProduction(cfg, SGSADims(**payload["dims"]),
+    model = SGSAProduction(cfg, build_dataclass(SGSADims, payload["dims"], "dims"),
                            adjacency(graph, counter=True) if cfg.decoder_layers > 0 else None)
     model.load_state_dict(payload["state_dict"])
     model.to(device).eval()
-    return LoadedSGSA(model, graph, text_vocab, gloss_vocab, payload["epoch"], payload["step"],
-                      payload["data_version"], payload["metrics"], payload["train_config"],
-                      payload.get("train_state"))
+    return LoadedSGSA.read(payload, model=model, graph=graph, text_vocab=text_vocab, gloss_vocab=gloss_vocab)

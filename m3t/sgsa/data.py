@@ -21,16 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from m3t.backtranslation.text import (
-    PAD,
-    TextProcessor,
-    Vocabulary,
-    annotated_gloss,
-    gloss_vocabulary,
-    text_vocabulary,
-)
+from m3t.backtranslation.text import TextProcessor, annotated_gloss
 from m3t.shards.skeletons import SkeletonClip
 from m3t.sgsa.config import SGSAConfig
+from m3t.vocabulary import PAD, Vocabulary, gloss_vocabulary, text_vocabulary
 
 
 def language_token(language: str) -> str:

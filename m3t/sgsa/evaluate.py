@@ -26,11 +26,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from m3t.backtranslation.text import Vocabulary
 from m3t.body.skeleton import SkeletonGraph, denormalise, regions
 from m3t.metrics.scorer import MotionScores, PointPair, score_point_pairs
 from m3t.sgsa.data import Sample, collate, text_batch
 from m3t.sgsa.model import SGSAProduction
+from m3t.vocabulary import Vocabulary
 
 MEAN_DTW = "dtw_jpe_mean_m"  # the mean of body and hand DTW-JPE (SOKE's raw cost), as for the SMLM
 SELECTION_METRIC = "dtw_jpe_mean_x_length_m"

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from m3t.backtranslation.model import sinusoid_table
+from m3t.positional_encoding import sinusoid_table
 from m3t.sgsa.config import SGSAConfig
 
 

@@ -17,8 +17,6 @@
 """
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -34,6 +32,7 @@ from m3t.body.skeleton import SkeletonGraph, graph_for, regions
 from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.scorer import PointPair, score_point_pairs
 from m3t.metrics.text import SLT_DEFINITION
+from m3t.reporting import csv_text, frame_csv
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import production_data_version, read_production_split
 from m3t.shards.skeletons import SKELETON_STREAM, graph_points, skeleton_clips
@@ -42,8 +41,8 @@ from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
 from m3t.sgsa.data import Sample, collate, make_samples, vocabularies
 from m3t.sgsa.evaluate import MEAN_DTW, generate, produced_points, score_production
 from m3t.sgsa.train import run_key, train_sgsa
-from m3t.backtranslation.text import Vocabulary
 from m3t.training import run_jobs, worker_split
+from m3t.vocabulary import Vocabulary
 
 SMLM_SYSTEM = "smlm"  # the M3T SMLM's generated motion, posed into the same skeleton
 REFERENCE = "ground_truth"  # the fitted motion itself: the judges' upper bound
@@ -236,7 +235,7 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
                                      **{name: produced[s.clip_id] for name, produced in produced_by.items()
                                         if s.clip_id in produced}}
     write_json(out / "metrics.json", summary)
-    write_text(out / "per_clip.csv", _csv(per_clip))
+    write_text(out / "per_clip.csv", frame_csv(per_clip))
     write_text(out / "backtranslation.csv", _bt_csv(bt_rows))
     write_jsonl(out / "skipped.jsonl", skipped)
     for cid, sequences in videos.items():
@@ -254,23 +253,11 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
     return summary
 
 
-def _csv(rows: list[dict]) -> str:
-    import pandas as pd
-
-    buffer = io.StringIO()
-    pd.DataFrame(rows).to_csv(buffer, index=False)
-    return buffer.getvalue()
-
-
 def _bt_csv(rows: list[dict]) -> str:
     """The judge's per-clip rows of every system and split (back-translation's columns after those two)."""
     if not rows:
         return ""
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=("system", "split", *PER_CLIP_COLUMNS), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
+    return csv_text(rows, ("system", "split", *PER_CLIP_COLUMNS))
 
 
 def evaluate_and_log(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body_cfg: BodyConfig, data: DataConfig,

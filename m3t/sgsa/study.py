@@ -28,6 +28,7 @@ from m3t.backtranslation.pipeline import backtranslate
 from m3t.body.protocol import BodyModel
 from m3t.body.skeleton import graph_for
 from m3t.metrics.stats import INCONCLUSIVE, NOT_REPRODUCED, REPRODUCED, paired, verdict_better
+from m3t.reporting import markdown_table
 from m3t.sgsa.checkpoint import load_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import make_samples, vocabularies
@@ -149,13 +150,14 @@ def stability(per_clip: dict[str, dict[str, dict[str, np.ndarray]]], comparisons
 def claims_markdown(summary: dict) -> str:
     lines = [f"SGSA claims on the {summary['split']} split, seeds {summary['seeds']} (paired per clip, seed-averaged; "
              "95 % hierarchical bootstrap interval over seeds and clips). DTW-JPE: SOKE raw DTW cost (and path-normalised), mean of body and "
-             "hands, mm; ROUGE-L: skeleton judge, SL-T definition, sentence level.", "",
-             "| claim | counter | metric | A | B | mean A | mean B | B - A | 95 % interval | verdict |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "hands, mm; ROUGE-L: skeleton judge, SL-T definition, sentence level.", ""]
+    body = []
     for r in summary["comparisons"]:
         metric, mean_a, mean_b, difference, low, high = in_display_units(r)
-        lines.append(f"| {r['claim']} | {r['counter']} | {metric} | {r['a']} | {r['b']} | {mean_a:.2f} | {mean_b:.2f} | "
-                     f"{difference:.2f} | [{low:.2f}, {high:.2f}] | {r['verdict']} |")
+        body.append([r["claim"], r["counter"], metric, r["a"], r["b"], f"{mean_a:.2f}", f"{mean_b:.2f}",
+                     f"{difference:.2f}", f"[{low:.2f}, {high:.2f}]", r["verdict"]])
+    lines.append(markdown_table(["claim", "counter", "metric", "A", "B", "mean A", "mean B", "B - A", "95 % interval",
+                                 "verdict"], body))
     steady = summary.get("stability") or {}
     if steady.get("compared"):
         first, second = steady["halves"]

@@ -15,13 +15,13 @@ or the ground-truth length (parity with published PT numbers, which were produce
 """
 from __future__ import annotations
 
-import math
 from collections import defaultdict
 
 import numpy as np
 
 from m3t.experiment import RunRecord, newest_finished
 from m3t.metrics.text import SLT_DEFINITION
+from m3t.reporting import fixed, markdown_table
 
 BLEU_COLUMNS = ("bleu4", "bleu3", "bleu2", "bleu1", "rouge_l")
 HEADER_NAMES = ("BLEU-4", "BLEU-3", "BLEU-2", "BLEU-1", "ROUGE")
@@ -78,18 +78,12 @@ def in_display_units(row: dict) -> tuple[str, float, float, float, float, float]
     return metric, *(scale * v for v in (row["mean_a"], row["mean_b"], row["difference"], low, high))
 
 
-def _cell(value: float | None) -> str:
-    return "-" if value is None or math.isnan(value) else f"{value:.2f}"
-
-
 def _render(title: str, first: str, rows: list[tuple[str, dict[str, float], int]], records: list[RunRecord]) -> str:
     columns = [f"{split} {name}" for split in SPLITS for name in (*HEADER_NAMES, "DTW-JPE")]
-    lines = [title, DEFINITION_LINE, counter_line(records), "", f"| {first} | " + " | ".join(columns) + " | seeds |",
-             "|" + "---|" * (len(columns) + 2)]
-    for name, values, seeds in rows:
-        cells = [_cell(values.get(f"{split}/{c}")) for split in SPLITS for c in (*BLEU_COLUMNS, "dtw_jpe_mm")]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {seeds} |")
-    return "\n".join(lines)
+    body = [[name, *(fixed(values.get(f"{split}/{c}"), 2) for split in SPLITS for c in (*BLEU_COLUMNS, "dtw_jpe_mm")),
+             seeds] for name, values, seeds in rows]
+    return "\n".join([title, DEFINITION_LINE, counter_line(records), "",
+                      markdown_table([first, *columns, "seeds"], body)])
 
 
 def _finished(records: list[RunRecord]) -> list[RunRecord]:

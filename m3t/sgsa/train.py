@@ -27,16 +27,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from m3t.backtranslation.data import epoch_batches
-from m3t.backtranslation.text import Vocabulary
 from m3t.body.skeleton import SkeletonGraph
-from m3t.runtime import choose_device
 from m3t.sgsa.checkpoint import build_model, load_sgsa, save_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch, Sample, collate
 from m3t.sgsa.evaluate import SELECTION_METRIC, ProductionEvaluator
 from m3t.sgsa.model import SGSAProduction
-from m3t.training import EpochTail, PlateauSchedule, Selection, TrainRun, adam, optimizer_step, run_digest
+from m3t.training import (
+    EpochTail,
+    PlateauSchedule,
+    Selection,
+    TrainRun,
+    adam,
+    epoch_batches,
+    optimizer_step,
+    run_digest,
+    run_epochs,
+    scalar_settings,
+    start_training,
+)
+from m3t.vocabulary import Vocabulary
 
 TRAIN_VERSION = "sgsa-v2"  # part of the resume key: bump when older training state becomes invalid
 
@@ -75,6 +85,16 @@ def losses(model: SGSAProduction, batch: Batch, gloss_weight: float, noise_std: 
     return result, err.detach()
 
 
+def train_step(model: SGSAProduction, batch: Batch, optim: torch.optim.Optimizer, schedule: PlateauSchedule,
+               gloss_weight: float, noise_std: torch.Tensor | None = None, counter_weight: float = 0.0,
+               grad_clip: float = 0.0) -> tuple[dict[str, float], torch.Tensor]:
+    """One optimiser step on ``batch`` (on the model's device): its losses, and the prediction errors (N, S) of its
+    real frames on the CPU (:func:`losses`)."""
+    out, err = losses(model, batch, gloss_weight, noise_std, counter_weight)
+    optimizer_step(out["loss"], model, optim, schedule, grad_clip)
+    return {k: float(v.item()) for k, v in out.items()}, err.cpu()
+
+
 def noise_ceiling(train: Sequence[Sample], noise_cap: float, device: torch.device) -> torch.Tensor | None:
     """(S,) the largest noise std per coordinate: ``noise_cap`` x the coordinate's std over the train split's frames
     (None with ``noise_cap`` 0: no cap)."""
@@ -101,19 +121,18 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
                stop_after_epochs: int | None = None) -> TrainRun:
     """Train one model on ``train``, selecting on ``dev`` (the first ``eval_max_clips``; without dev clips the
     last epoch is kept). ``last_path``: the resumable checkpoint, continued when it exists."""
-    from tqdm.auto import tqdm
-
     if not train:
         raise ValueError("no training clip for the skeletal production model")
-    device = choose_device(cfg.device)
-    torch.manual_seed(cfg.seed)
+    device = start_training(cfg.device, cfg.seed)
     model = build_model(model_cfg, graph, text_vocab, gloss_vocab).to(device)
     optim = adam(model.parameters(), device, lr=cfg.lr)
     schedule = PlateauSchedule(optim, "min", cfg.lr_factor, cfg.lr_patience, cfg.min_lr)
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+    settings = scalar_settings(cfg)
     dev = list(dev)[: cfg.eval_max_clips] if cfg.eval_max_clips > 0 else list(dev)
     evaluator = ProductionEvaluator(dev, graph, text_vocab, model_cfg.max_frames) if dev else None
-    noise = {"std": None}  # per-coordinate std of the previous epoch's prediction error (S,)
+    # per-coordinate std (S,) of the previous epoch's prediction error, and of this epoch's input noise
+    noise = {"std": None, "input": None}
+    errors: list[torch.Tensor] = []  # this epoch's prediction errors (N, S)
     cap = noise_ceiling(train, cfg.noise_cap, device)
 
     def evaluate() -> dict[str, float]:
@@ -139,21 +158,22 @@ def train_sgsa(model_cfg: SGSAConfig, cfg: SGSATrainConfig, graph: SkeletonGraph
         return loaded
 
     resumed_from_epoch = tail.resume_saved(model, load, f"the {model_cfg.variant} model")
-    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"train {model_cfg.variant}", unit="epoch",
-               disable=not progress)
-    for epoch in bar:
-        model.train()
-        sums: dict[str, list[float]] = {}
-        errors = []
-        std = augmentation_std(noise["std"], cfg.noise_rate, cap, device)
-        for samples in epoch_batches(list(train), cfg.batch_size, cfg.seed, epoch):
-            out, err = losses(model, collate(samples, text_vocab).to(device), model_cfg.gloss_weight, std,
-                              cfg.counter_weight)
-            optimizer_step(out["loss"], model, optim, schedule, cfg.grad_clip)
-            errors.append(err.cpu())
-            for k, v in out.items():
-                sums.setdefault(k, []).append(float(v.item()))
-            tail.step += 1
+
+    def start_epoch(epoch: int) -> None:
+        errors.clear()
+        noise["input"] = augmentation_std(noise["std"], cfg.noise_rate, cap, device)
+
+    def train_batch(samples: list[Sample]) -> dict[str, float]:
+        stats, err = train_step(model, collate(samples, text_vocab).to(device), optim, schedule,
+                                model_cfg.gloss_weight, noise["input"], cfg.counter_weight, cfg.grad_clip)
+        errors.append(err)
+        return stats
+
+    def end_batches() -> None:
         noise["std"] = torch.cat(errors).double().std(0).float() if sum(len(e) for e in errors) > 1 else None
-        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in sums.items()}, bar)
+
+    samples = list(train)
+    run_epochs(tail, model, lambda epoch: epoch_batches(samples, cfg.batch_size, cfg.seed, epoch), train_batch,
+               f"train {model_cfg.variant}", progress, stop_after_epochs, before_epoch=start_epoch,
+               after_batches=end_batches)
     return tail.result(model, resumed_from_epoch)

@@ -4,7 +4,7 @@ section, ``data``.
 ``data.train_corpora`` names the corpora that the downstream stages train on **jointly** (one tokenizer
 set and one SMLM on all of them, checkpoints selected on all their dev splits, as M3T trains on How2Sign +
 CSL-Daily + Phoenix14T); switching or adding a training corpus is that one key (plus, for DVC, the
-matching dependency lines in dvc.yaml, which ``tests/test_architecture.py`` checks). Each corpus keeps its
+matching dependency lines in dvc.yaml, which ``tests/project/test_architecture.py`` checks). Each corpus keeps its
 own folders (``<shards_root>/<corpus>``, ``<tokens_root>/<corpus>``); models and evaluation outputs have
 one folder each.
 """

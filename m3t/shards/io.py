@@ -8,7 +8,6 @@ Axis legend: N clips in a shard, T frames, D_m per-frame dim of modality m, P id
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ import pyarrow.parquet as pq
 
 from m3t.atomic import atomic_path
 from m3t.body.protocol import ModalityLayout
+from m3t.digest import chunks_digest, file_digest_bytes
 from m3t.shards.schema import (
     IDENTITY_COLUMN,
     METADATA_COLUMNS,
@@ -296,8 +296,7 @@ def production_data_version(data) -> str:
 def data_version(paths: list[Path]) -> str:
     """Digest of the data files a model is trained on, by name and bytes (part of every trainer's resume key and
     checkpoint)."""
-    h = hashlib.sha256()
+    chunks: list[bytes] = []
     for path in paths:
-        h.update(Path(path).name.encode())
-        h.update(hashlib.sha256(Path(path).read_bytes()).digest())
-    return h.hexdigest()[:16]
+        chunks += [Path(path).name.encode(), file_digest_bytes(path)]
+    return chunks_digest(chunks, length=16)

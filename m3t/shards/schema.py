@@ -19,6 +19,7 @@ import pyarrow as pa
 
 from m3t.body.protocol import Modality, ModalityLayout
 from m3t.corpora.clip import Clip
+from m3t.dataclass_io import build_dataclass
 
 SCHEMA_VERSION = 1
 VERSION_KEY = b"m3t.schema_version"
@@ -221,7 +222,7 @@ def clip_from_columns(columns: dict[str, list], row: int) -> Clip:
     """Inverse of :func:`clip_record` for row ``row`` of column lists."""
     values = {name: columns[name][row] for name in CLIP_COLUMNS}
     values["extra"] = extra_from_json(values["extra"])
-    return Clip(**values)
+    return build_dataclass(Clip, values, "clip")
 
 
 def clip_metadata(clip: FittedClip) -> dict[str, Any]:

@@ -17,9 +17,10 @@ from typing import Any
 
 import torch
 
-from m3t.slr.config import SLRConfig, TrimConfig
+from m3t.dataclass_io import build_dataclass
+from m3t.slr.config import SLRConfig
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-slr-v1"
 
@@ -35,15 +36,9 @@ class ProbeMeta:
 
 
 @dataclass(frozen=True)
-class LoadedSLR:
+class LoadedSLR(CheckpointRecord):
     model: SLRProbe
     meta: ProbeMeta
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_config: dict
-    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
 
 
 def _plain(value: Any) -> Any:
@@ -69,19 +64,14 @@ def save_slr(path: str | os.PathLike, model: SLRProbe, meta: ProbeMeta, epoch: i
 
 
 def config_from_dict(raw: dict) -> SLRConfig:
-    raw = dict(raw)
-    raw["trim"] = TrimConfig(**raw.get("trim", {}))
-    return SLRConfig(**raw)
+    return build_dataclass(SLRConfig, raw, "config")
 
 
 def load_slr(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSLR:
     payload = read_checkpoint(path, FORMAT, "SLR probe", "train-slr", device)
-    dims = payload["dims"]
-    model = SLRProbe(config_from_dict(payload["config"]),
-                     ProbeDims(int(dims["width"]), int(dims["num_classes"]), tuple(dims["streams"])))
+    model = SLRProbe(config_from_dict(payload["config"]), build_dataclass(ProbeDims, payload["dims"], "dims"))
     model.load_state_dict(payload["state_dict"])
     model.to(device).eval()
     meta = ProbeMeta(payload["variant"], tuple(payload["classes"]), tuple(payload["class_names"]),
                      dict(payload["tokenizers"]))
-    return LoadedSLR(model, meta, payload["epoch"], payload["step"], payload["data_version"], dict(payload["metrics"]),
-                     dict(payload.get("train_config", {})), payload.get("train_state"))
+    return LoadedSLR.read(payload, model=model, meta=meta)

@@ -3,7 +3,7 @@ with its number of clips and classes, a percentile bootstrap confidence interval
 
 - **Subsets** come from the clips: ``subset`` (NMFs-CSL, from the official confusing list) or ``group``
   (the embedded synthetic corpus). When any scored clip has neither, the subsets are reported unavailable
-  with the reason, never guessed (NMFs-CSL: set ``corpora.nmfs_csl.confusing_list``).
+  with the reason, never guessed (NMFs-CSL: set ``corpora.nmfs_csl.options.confusing_list``).
 - **Chance.** ``chance_top1`` / ``chance_top5``: a uniform guess over the probe's C classes, 1/C and min(5, C)/C.
   On the confusing subset the telling number is another one: a probe that gets the manual form right but reads
   nothing from the face picks among the k signs sharing that form, chance 1/k (50% for pairs). Where clips carry

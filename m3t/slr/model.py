@@ -13,7 +13,7 @@ encoder -> pooled -> classifier.
 
 Parameter count at the paper's width 1024 and NMFs-CSL's 1067 classes: 26.43M with FFN 2W = 2048 (torch's
 default ``dim_feedforward``) and the linear head, the paper's "26M"; an FFN of 4W would give 39.0M, a hidden
-head layer of W another 1.05M. Hence ``ffn_mult: 2`` and ``head_hidden: 0`` (tests/test_slr.py checks it).
+head layer of W another 1.05M. Hence ``ffn_mult: 2`` and ``head_hidden: 0`` (tests/slr/test_slr.py checks it).
 
 Axis legend: B batch, N token steps, S streams, L = N * S positions, W width, C classes.
 """

@@ -13,8 +13,6 @@ one corpus (``slr.corpus``: its fitted shards ``data.shards_dir(corpus)``) and t
 """
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
@@ -28,6 +26,7 @@ from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import STREAM_ORDER, BodyModel
 from m3t.corpora.nmfs_csl import SUBSET_HINT
 from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.reporting import csv_text
 from m3t.runtime import choose_device
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_split
@@ -302,11 +301,7 @@ def run_evaluate_slr(eval_cfg: SLREvaluateConfig, body: BodyModel | None, data: 
                                       "variants": {v: ev.to_dict() for v, ev in evaluations.items()}})
     write_text(out / "table.csv", table_csv(evaluations))
     write_text(out / "table.md", table_markdown(evaluations, corpus, eval_cfg.split, eval_cfg.confidence))
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text(out / "predictions.csv", buffer.getvalue())
+    write_text(out / "predictions.csv", csv_text(rows, list(rows[0])))
     write_jsonl(out / "skipped.jsonl", skipped)
     return SLREvaluation(corpus, evaluations, summary, {v: p.train_config for v, p in probes.items()})
 

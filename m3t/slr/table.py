@@ -5,20 +5,15 @@ class counts and what chance means).
 """
 from __future__ import annotations
 
-import csv
-import io
 import math
 
 from m3t.experiment import RunRecord, newest_finished
+from m3t.reporting import csv_text, fixed, markdown_table
 from m3t.slr.evaluate import PAIR_CHANCE_TOP1, Evaluation, Score, evaluations_from_flat
 
 METHODS = {"full": "M3T probe (body, hands, face)", "no_face": "M3T probe w/o face"}
 SUBSET_LABELS = {"overall": "Overall", "confusing": "Conf.", "normal": "Norm."}
 METRICS = {"top1": "T-1", "top5": "T-5"}
-
-
-def _num(value: float | None) -> str:
-    return "" if value is None or math.isnan(value) else f"{value:.4f}"
 
 
 def _cell(score: Score | None) -> str:
@@ -41,16 +36,12 @@ def table_csv(evaluations: dict[str, Evaluation]) -> str:
             for metric in METRICS:
                 score = None if s is None else getattr(s, metric)
                 for key, attr in (("", "value"), ("_ci_low", "ci_low"), ("_ci_high", "ci_high"), ("_chance", "chance")):
-                    row[f"{subset}_{metric}{key}"] = _num(None if score is None else getattr(score, attr))
+                    row[f"{subset}_{metric}{key}"] = fixed(None if score is None else getattr(score, attr), 4, "")
         pair = ev.scores["confusing"].pair_top1 if "confusing" in ev.scores else None
         for key, attr in (("", "value"), ("_ci_low", "ci_low"), ("_ci_high", "ci_high"), ("_chance", "chance")):
-            row[f"confusing_pair_top1{key}"] = _num(None if pair is None else getattr(pair, attr))
+            row[f"confusing_pair_top1{key}"] = fixed(None if pair is None else getattr(pair, attr), 4, "")
         rows.append(row)
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["variant"], lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
+    return csv_text(rows, list(rows[0]) if rows else ["variant"])
 
 
 def table_markdown(evaluations: dict[str, Evaluation], corpus: str, split: str, confidence: float = 0.95) -> str:
@@ -63,15 +54,15 @@ def table_markdown(evaluations: dict[str, Evaluation], corpus: str, split: str, 
     columns = [(s, m) for s in SUBSET_LABELS for m in METRICS]
     header = ["Method"] + [f"{SUBSET_LABELS[s]} {METRICS[m]}" for s, m in columns]
     header += ["Conf. pair T-1"] if pairs else []
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    body = []
     for variant, ev in evaluations.items():
         cells = [_cell(getattr(ev.scores[s], m)) if s in ev.scores else "n/a" for s, m in columns]
         if pairs:
             cells.append(_cell(ev.scores["confusing"].pair_top1) if "confusing" in ev.scores else "n/a")
-        lines.append(f"| {METHODS.get(variant, variant)} | " + " | ".join(cells) + " |")
+        body.append([METHODS.get(variant, variant), *cells])
     chance = [f"{getattr(first.scores['overall'], m).chance:.1f}" for _, m in columns]
     chance += [f"{PAIR_CHANCE_TOP1:.1f}"] if pairs else []
-    lines.append("| chance (uniform guess) | " + " | ".join(chance) + " |")
+    body.append(["chance (uniform guess)", *chance])
     overall = first.scores["overall"]
     notes = [f"{corpus}, {split} split; accuracies in %, [{100 * confidence:.0f}% percentile bootstrap interval "
              "over clips].",
@@ -88,7 +79,7 @@ def table_markdown(evaluations: dict[str, Evaluation], corpus: str, split: str, 
                          "(chance 50%): the face alone decides.")
     else:
         notes.append(f"Subsets unavailable: {first.subsets_reason}")
-    return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes) + "\n"
+    return markdown_table(header, body) + "\n\n" + "\n".join(f"- {n}" for n in notes) + "\n"
 
 
 def recognition_table(records: list[RunRecord]) -> str:

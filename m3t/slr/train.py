@@ -15,17 +15,28 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
-from m3t.runtime import autocast, choose_device
+from m3t.runtime import autocast
 from m3t.slr.checkpoint import ProbeMeta, load_slr, save_slr
 from m3t.slr.config import SLRConfig, SLRTrainConfig
 from m3t.slr.evaluate import topk_hits
 from m3t.slr.features import Example, variant_streams
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import EpochTail, Selection, TrainRun, adam, optimizer_step, run_digest, warmup_cosine
+from m3t.training import (
+    EpochTail,
+    Selection,
+    TrainRun,
+    adam,
+    epoch_batches,
+    optimizer_step,
+    run_digest,
+    run_epochs,
+    scalar_settings,
+    start_training,
+    warmup_cosine,
+)
 
 TRAIN_VERSION = "slr-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -110,18 +121,15 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
     ``last_path``: the resumable checkpoint, written at most every 30 s and at the end, and continued from when
     it exists
     (name it by :func:`run_key`); ``stop_after_epochs``: train at most that many more epochs."""
-    from tqdm.auto import tqdm
-
     if not train:
         raise ValueError(f"probe {meta.variant!r}: no training clips (every labelled train clip was skipped?)")
-    device = choose_device(train_cfg.device)
-    torch.manual_seed(train_cfg.seed)
+    device = start_training(train_cfg.device, train_cfg.seed)
     dims = ProbeDims(width, len(meta.classes), variant_streams(meta.variant))
     model = SLRProbe(cfg, dims).to(device)
     per_epoch = -(-len(train) // train_cfg.batch_size)
     optim = adam(model.parameters(), device, lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     scheduler = warmup_cosine(optim, train_cfg.epochs, per_epoch, train_cfg.warmup_epochs, "epochs", train_cfg.min_lr)
-    settings = {k: v for k, v in dataclasses.asdict(train_cfg).items() if isinstance(v, (bool, int, float, str))}
+    settings = scalar_settings(train_cfg)
     evaluate = None
     if dev:
         def evaluate() -> dict[str, float]:
@@ -134,16 +142,8 @@ def train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, meta: ProbeMeta, width:
                                                                settings, state),
         best_path=best_path, last_path=last_path, evaluate=evaluate, on_epoch=on_epoch)
     resumed_from_epoch = tail.resume_saved(model, lambda p: load_slr(p, device), f"the {meta.variant} probe")
-    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"slr {meta.variant}", unit="epoch", disable=not progress)
-    for epoch in bar:
-        model.train()
-        order = np.random.default_rng([train_cfg.seed, epoch]).permutation(len(train))
-        stats: dict[str, list[float]] = {}
-        for i in range(0, len(order), train_cfg.batch_size):
-            batch = collate([train[j] for j in order[i: i + train_cfg.batch_size]], dims.streams, device)
-            for k, v in train_step(model, batch, optim, scheduler, train_cfg.precision, train_cfg.grad_clip,
-                                   train_cfg.label_smoothing).items():
-                stats.setdefault(k, []).append(v)
-            tail.step += 1
-        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in stats.items()}, bar)
+    run_epochs(tail, model, lambda epoch: epoch_batches(train, train_cfg.batch_size, train_cfg.seed, epoch),
+               lambda examples: train_step(model, collate(examples, dims.streams, device), optim, scheduler,
+                                           train_cfg.precision, train_cfg.grad_clip, train_cfg.label_smoothing),
+               f"slr {meta.variant}", progress, stop_after_epochs)
     return tail.result(model, resumed_from_epoch)

@@ -13,24 +13,19 @@ from typing import Any
 
 import torch
 
+from m3t.dataclass_io import build_dataclass
 from m3t.smlm.config import SMLMConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
-from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-smlm-v1"
 
 
 @dataclass(frozen=True)
-class LoadedSMLM:
+class LoadedSMLM(CheckpointRecord):
     model: SignMotionLM
     vocab: SignVocabulary
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_config: dict
-    train_state: dict[str, Any] | None = None  # only in a ``last`` checkpoint
 
 
 def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabulary, epoch: int, step: int,
@@ -50,10 +45,9 @@ def save_smlm(path: str | os.PathLike, model: SignMotionLM, vocab: SignVocabular
 def load_smlm(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedSMLM:
     payload = read_checkpoint(path, FORMAT, "SMLM", "train-smlm", device)
     vocab = SignVocabulary.from_dict(payload["vocabulary"])
-    dims = SMLMDims(**payload["dims"])
-    model = SignMotionLM(SMLMConfig(**payload["config"]), dims, backbone_config=payload["backbone_config"])
+    dims = build_dataclass(SMLMDims, payload["dims"], "dims")
+    model = SignMotionLM(build_dataclass(SMLMConfig, payload["config"], "config"), dims,
+                         backbone_config=payload["backbone_config"])
     model.load_state_dict(payload["state_dict"])
     model.to(device).eval()
-    return LoadedSMLM(model, vocab, payload["epoch"], payload["step"], payload["data_version"],
-                      dict(payload["metrics"]), dict(payload.get("train_config", {})),
-                      payload.get("train_state"))
+    return LoadedSMLM.read(payload, model=model, vocab=vocab)

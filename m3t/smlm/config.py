@@ -15,7 +15,7 @@ class GenerateConfig:
     render_clips: int = 2
     export_pose: bool = True
     backtranslate: bool = True  # evaluate-smlm also scores the generated motion with the back-translation judge
-    # motion metric variant (m3t.metrics.motion): "m3t" = neck-rooted body, every table of the README;
+    # motion metric variant (m3t.metrics.motion): "m3t" = neck-rooted body, every embedded-default table;
     # "soke_exact" = SOKE's released evaluation (pelvis-rooted body, PA on all joints; body.model: smplfx only)
     motion_metric: Literal["m3t", "soke_exact"] = "m3t"
 

@@ -19,7 +19,7 @@ rows are first gathered through :attr:`SMLMDims.pretrained_text_ids`.
 The text head is a linear layer of its own (not tied to the embedding, unlike mBART's ``lm_head``), started
 from the pretrained text rows: M3T App. 0.D.2 lists it among the five heads it introduces, and with a text
 vocabulary reduced to the three corpora (~20k ids) an untied head gives the paper's 396M, a tied one 375M
-(``tests/test_smlm_reduced_vocab.py`` counts both).
+(``tests/smlm/test_smlm_reduced_vocab.py`` counts both).
 
 Axis legend: B batch, L text positions, U motion steps, S = 4 motion streams, D hidden size.
 """

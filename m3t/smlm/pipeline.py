@@ -23,7 +23,6 @@ fitted shards of ``data.train_corpora`` (trained jointly; checkpoint selected on
 """
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -39,6 +38,7 @@ from m3t.body.protocol import BodyModel
 from m3t.experiment import ExperimentConfig, section_params, start_run, to_dict
 from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.text import SLT_DEFINITION
+from m3t.reporting import frame_csv
 from m3t.runtime import DistributedContext, distributed_context
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_split
@@ -238,8 +238,6 @@ def variant_name(train_config: dict) -> str:
 def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
                  judge: BackTranslationConfig | None = None) -> tuple[EvaluationReport, dict]:
     """``judge``: the back-translation decoding settings (beam, length penalty; defaults when None)."""
-    import pandas as pd
-
     setup = evaluator_for(cfg, data, body)
     loaded, evaluator = setup.loaded, setup.evaluator
     out = data.generated
@@ -271,9 +269,7 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
             report.summary.update({f"bt/{k}": v for k, v in judged.summary.items()})
             write_text(metrics_dir / "backtranslation.csv", per_clip_csv(judged.per_clip))
     write_json(metrics_dir / "metrics.json", report.summary)
-    buffer = io.StringIO()
-    pd.DataFrame(report.per_clip).to_csv(buffer, index=False)
-    write_text(metrics_dir / "per_clip.csv", buffer.getvalue())
+    write_text(metrics_dir / "per_clip.csv", frame_csv(report.per_clip))
     return report, loaded.train_config
 
 

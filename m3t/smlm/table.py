@@ -6,16 +6,11 @@ path-length-normalised variant is in the run's metrics as ``..._pathnorm_m``.
 """
 from __future__ import annotations
 
-import math
-
 from m3t.experiment import RunRecord, newest_finished
+from m3t.reporting import fixed, markdown_table
 
 COLUMNS = (("dtw_pa_jpe_body_m", "PA body"), ("dtw_pa_jpe_hand_m", "PA hand"),
            ("dtw_jpe_body_m", "JPE body"), ("dtw_jpe_hand_m", "JPE hand"))
-
-
-def _fmt(value: float | None) -> str:
-    return "-" if value is None or math.isnan(value) else f"{value:.3f}"
 
 
 def production_table(records: list[RunRecord], variant_tag: str = "variant") -> str:
@@ -24,10 +19,7 @@ def production_table(records: list[RunRecord], variant_tag: str = "variant") -> 
     if not rows:
         return "no finished evaluate-smlm runs yet: run `dvc repro evaluate-smlm`"
     groups = sorted({k.rsplit("/", 1)[0] for r in rows.values() for k in r.metrics if k.endswith("/dtw_jpe_body_m")})
-    header = "| variant | " + " | ".join(f"{g} {label}" for g in groups for _, label in COLUMNS) + " | BLEU-4 |"
-    lines = [header, "|" + "---|" * (2 + len(groups) * len(COLUMNS))]
-    for name, record in sorted(rows.items()):
-        cells = [_fmt(record.metrics.get(f"{g}/{key}")) for g in groups for key, _ in COLUMNS]
-        bleu = record.metrics.get("translation_bleu4")
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {'-' if bleu is None else f'{bleu:.2f}'} |")
-    return "\n".join(lines)
+    header = ["variant", *(f"{g} {label}" for g in groups for _, label in COLUMNS), "BLEU-4"]
+    body = [[name, *(fixed(record.metrics.get(f"{g}/{key}"), 3) for g in groups for key, _ in COLUMNS),
+             fixed(record.metrics.get("translation_bleu4"), 2)] for name, record in sorted(rows.items())]
+    return markdown_table(header, body)

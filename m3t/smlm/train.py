@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from m3t.runtime import DistributedContext, autocast, choose_device
+from m3t.runtime import DistributedContext, autocast
 from m3t.smlm.checkpoint import load_smlm, save_smlm
 from m3t.smlm.data import (
     IGNORE,
@@ -35,7 +35,18 @@ from m3t.smlm.data import (
 from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
-from m3t.training import EpochTail, Selection, TrainRun, adam, optimizer_step, run_digest, warmup_cosine
+from m3t.training import (
+    EpochTail,
+    Selection,
+    TrainRun,
+    adam,
+    optimizer_step,
+    run_digest,
+    run_epochs,
+    scalar_settings,
+    start_training,
+    warmup_cosine,
+)
 
 TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid
 
@@ -140,13 +151,10 @@ def train_smlm(
     it exists
     (name it by :func:`run_key` so that a different run never continues it); ``stop_after_epochs``: train
     at most that many more epochs (a deliberate interruption, for tests and time-boxed jobs)."""
-    from tqdm.auto import tqdm
-
     if not train:
         raise ValueError("no training examples: the token shards have no usable clip (see the skipped list)")
     dist_ctx = dist_ctx or DistributedContext()
-    device = dist_ctx.device if dist_ctx.world_size > 1 else choose_device(cfg.device)
-    torch.manual_seed(cfg.seed)
+    device = start_training(cfg.device, cfg.seed, dist_ctx)
     model = SignMotionLM(model_cfg, SMLMDims.from_vocabulary(vocab)).to(device)
     if dist_ctx.world_size > 1:  # identical start on every rank
         for p in model.parameters():
@@ -157,7 +165,7 @@ def train_smlm(
     optim = adam(model.parameters(), device, decoupled=True, lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = warmup_cosine(optim, cfg.epochs, optimizer_steps_per_epoch(len(train), cfg, dist_ctx.world_size),
                               cfg.warmup_steps, "steps", cfg.min_lr)
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if isinstance(v, (bool, int, float, str))}
+    settings = scalar_settings(cfg)
     tail = EpochTail(
         cfg.epochs, cfg.eval_every,
         # without an evaluator the last epoch is kept
@@ -167,16 +175,9 @@ def train_smlm(
         best_path=best_path, last_path=last_path, evaluate=None if evaluate is None else lambda: evaluate(model),
         is_main=dist_ctx.is_main, on_epoch=on_epoch)
     resumed_from_epoch = tail.resume_saved(model, lambda p: load_smlm(p, device), "the SMLM")
-    bar = tqdm(tail.remaining(stop_after_epochs), desc="smlm", unit="epoch",
-               disable=not progress or not dist_ctx.is_main)
-    for epoch in bar:
-        model.train()
-        losses: dict[str, list[float]] = {}
-        for batch in epoch_batches(train, vocab, cfg, epoch, dist_ctx.rank, dist_ctx.world_size):
-            for k, v in train_step(model, batch, optim, scheduler, cfg.precision, cfg.grad_clip,
-                                   cfg.label_smoothing).items():
-                losses.setdefault(k, []).append(v)
-            tail.step += 1
-        # np.mean per key: the two tasks' losses come from different numbers of steps
-        tail.end_epoch(epoch, {f"train_{k}": float(np.mean(v)) for k, v in losses.items()}, bar)
+    # the mean per key: the two tasks' losses come from different numbers of steps
+    run_epochs(tail, model, lambda epoch: epoch_batches(train, vocab, cfg, epoch, dist_ctx.rank, dist_ctx.world_size),
+               lambda batch: train_step(model, batch, optim, scheduler, cfg.precision, cfg.grad_clip,
+                                        cfg.label_smoothing),
+               "smlm", progress, stop_after_epochs)
     return tail.result(model, resumed_from_epoch)

@@ -13,6 +13,7 @@ import math
 from typing import Iterable
 
 from m3t.experiment import RunRecord, newest_finished
+from m3t.reporting import fixed, markdown_table
 from m3t.tokenizers.config import QUANTIZERS
 
 CPU_WIDTHS = (32, 64, 128)
@@ -42,16 +43,11 @@ def dvc_command(setting: dict, stage: str = "train-tokenizers") -> list[str]:
     return args
 
 
-def fmt_or_dash(value: float | None, digits: int) -> str:
-    """``value`` to ``digits`` decimals; "-" when it is missing or NaN."""
-    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
-
-
 def _cell(values: list[float], digits: int) -> str:
     """One seed's value, or mean +- population SD over the seeds."""
     values = [v for v in values if v is not None and not math.isnan(v)]
     if len(values) < 2:
-        return fmt_or_dash(values[0] if values else None, digits)
+        return fixed(values[0] if values else None, digits)
     mean = sum(values) / len(values)
     sd = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
     return f"{mean:.{digits}f} +- {sd:.{digits}f}"
@@ -72,14 +68,13 @@ def ablation_table(records: list[RunRecord]) -> str:
     columns = (("PA-VPE {} (mm)", "test_pa_vpe_mm", 2), ("util {} %", "utilisation_pct", 1),
                ("ppl/K {}", "perplexity_per_code", 2), ("count SD {}", "count_sd", 1),
                ("tokens/K {}", "tokens_per_code", 1))
-    header = ("| Q | BS | HS | seeds | " + " | ".join(name.format(g) for name, _, _ in columns for g in GROUPS)
-              + " |")
-    lines = [header, "|" + "---|" * (4 + len(columns) * len(GROUPS))]
+    header = ["Q", "BS", "HS", "seeds", *(name.format(g) for name, _, _ in columns for g in GROUPS)]
+    body = []
     order = list(QUANTIZERS)
     for (q, bs, hs), group_runs in sorted(rows.items(), key=lambda kv: (
             (kv[0][0] == "fsq", order.index(kv[0][0]) if kv[0][0] in order else len(order)), kv[0][1], kv[0][2])):
         cells = [q.upper(), str(bs), str(hs), str(len(group_runs))]
         cells += [_cell([r.metrics.get(f"{g}/{key}") for r in group_runs], digits)
                   for _, key, digits in columns for g in GROUPS]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        body.append(cells)
+    return markdown_table(header, body)

@@ -13,22 +13,18 @@ from typing import Any
 
 import torch
 
+from m3t.dataclass_io import build_dataclass
 from m3t.tokenizers.config import VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer
-from m3t.training import checkpoint_payload, read_checkpoint, save_checkpoint
+from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-tokenizer-v1"
 
 
 @dataclass(frozen=True)
-class LoadedTokenizer:
+class LoadedTokenizer(CheckpointRecord):
     model: MotionTokenizer
     group: str
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_state: dict[str, Any] | None
 
 
 def config_to_dict(cfg: VAEConfig) -> dict[str, Any]:
@@ -46,10 +42,7 @@ def save_tokenizer(path: str | os.PathLike, model: MotionTokenizer, group: str, 
 
 def load_tokenizer(path: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedTokenizer:
     payload = read_checkpoint(path, FORMAT, "tokenizer", "train-tokenizers", device)
-    raw = dict(payload["config"])
-    raw["levels"] = tuple(raw["levels"])
-    model = MotionTokenizer(VAEConfig(**raw)).to(device)
+    model = MotionTokenizer(build_dataclass(VAEConfig, payload["config"], "config")).to(device)
     model.load_state_dict(payload["state_dict"])
     model.eval()
-    return LoadedTokenizer(model, payload["group"], payload["epoch"], payload["step"], payload["data_version"],
-                           dict(payload["metrics"]), payload.get("train_state"))
+    return LoadedTokenizer.read(payload, model=model, group=payload["group"])

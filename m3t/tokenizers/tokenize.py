@@ -8,13 +8,13 @@ the others go on. Clips shorter than one token window are edge-padded to one tok
 """
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 
 from m3t.atomic import write_json, write_jsonl
 from m3t.corpora.base import SPLITS
+from m3t.digest import file_digest
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import read_split
 from m3t.shards.tokens import TokenClip, TokenInfo, write_token_shard
@@ -30,7 +30,7 @@ def load_tokenizers(tokenizers_dir: str | Path) -> tuple[dict[str, MotionTokeniz
     for group in GROUPS:
         path = Path(tokenizers_dir) / f"{group}.pt"
         models[group] = load_tokenizer(path).model
-        digests[group] = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+        digests[group] = file_digest(path, length=16)
     factors = {m.cfg.downsample for m in models.values()}
     if len(factors) != 1:
         raise ValueError(f"tokenizers in {tokenizers_dir} downsample by different factors {sorted(factors)}; "

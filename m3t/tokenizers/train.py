@@ -11,7 +11,9 @@ Axis legend: B batch, W window frames, D group dim.
 from __future__ import annotations
 
 import dataclasses
+import operator
 from dataclasses import dataclass, field
+from functools import reduce
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -19,7 +21,7 @@ import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 
-from m3t.runtime import DistributedContext, autocast, choose_device
+from m3t.runtime import DistributedContext, autocast
 from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
 from m3t.tokenizers.data import WindowSampler, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
@@ -31,6 +33,8 @@ from m3t.training import (
     adam,
     optimizer_step,
     run_digest,
+    run_epochs,
+    start_training,
     warmup_cosine,
 )
 
@@ -90,19 +94,16 @@ def train_tokenizer(
     progress: bool = True,
 ) -> TrainResult:
     """Train (or resume) one tokenizer; returns where its ``best`` and ``last`` checkpoints are."""
-    from tqdm.auto import tqdm
-
     dist_ctx = dist_ctx or DistributedContext()
     if cfg.window % model_cfg.downsample:
         raise ValueError(f"tokenizer_train.window ({cfg.window}) must be a multiple of the downsampling factor "
                          f"{model_cfg.downsample}")
-    device = dist_ctx.device if dist_ctx.world_size > 1 else choose_device(cfg.device)
     key = run_key(group, model_cfg, cfg, data_version)
     # Both checkpoints live in the cache under the run key (so a finished run is never redone); the
     # stage copies ``best`` to ``out_dir``.
     last_path = Path(cfg.cache_dir) / f"{group}-{key}.last.pt"
     best_path = Path(cfg.cache_dir) / f"{group}-{key}.best.pt"
-    torch.manual_seed(cfg.seed)
+    device = start_training(cfg.device, cfg.seed, dist_ctx)
     model = MotionTokenizer(model_cfg)
     model.set_normalisation(*normalisation(train_sequences))
     model.to(device)
@@ -122,15 +123,9 @@ def train_tokenizer(
     # resume: same config + same data -> continue the same curve
     resumed_from_epoch = tail.resume_saved(model, lambda p: load_tokenizer(p, device), f"tokenizer {group!r}")
     net = DistributedDataParallel(model) if dist_ctx.world_size > 1 else model
-    bar = tqdm(tail.remaining(stop_after_epochs), desc=f"tokenizer:{group}", unit="epoch",
-               disable=not progress or not dist_ctx.is_main)
-    for epoch in bar:
-        net.train()
-        sums: dict[str, float] = {}
-        for batch in sampler.epoch(epoch):
-            stats = train_step(net, tuple(t.to(device) for t in batch), optim, scheduler, cfg.precision)
-            tail.step += 1
-            for k, v in stats.items():
-                sums[k] = sums.get(k, 0.0) + v
-        tail.end_epoch(epoch, {f"train_{k}": v / steps_per_epoch for k, v in sums.items()}, bar)
+    run_epochs(tail, net, sampler.epoch,
+               lambda batch: train_step(net, tuple(t.to(device) for t in batch), optim, scheduler, cfg.precision),
+               f"tokenizer:{group}", progress, stop_after_epochs,
+               # summed in step order, over the sampler's steps: the recorded means keep their exact values
+               average=lambda values: reduce(operator.add, values, 0.0) / steps_per_epoch)
     return TrainResult(group, best_path, last_path, tail.history, tail.best, resumed_from_epoch, model)

@@ -18,10 +18,10 @@ keypoints          shards, slt ``sign`` arrays -> feature shards as stored, no i
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from pathlib import Path
 
 from m3t.corpora.clip import Clip
+from m3t.digest import file_digest
 from m3t.trackers.track import Track
 
 POSEFILE_VERSION = "posefile-v1"  # bump when the .pose -> track conversion changes its output
@@ -53,15 +53,11 @@ def media_kind(clip: Clip) -> str:
     return kind
 
 
-def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes, read in 1 MiB blocks (videos can be large)."""
+def media_digest(path: Path) -> str:
+    """Hex SHA-256 of a media file's bytes; a missing file names the fix."""
     if not path.is_file():
         raise FileNotFoundError(f"media file {path} is missing; check the corpus root")
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return file_digest(path)
 
 
 def _folder_stamp(folder: Path) -> list[tuple[str, int, int]]:
@@ -76,13 +72,13 @@ def media_key(clip: Clip, root: Path, mediapipe_cfg: object | None = None) -> ob
     kind = media_kind(clip)
     media = root / clip.media
     if kind == "pose":
-        return [kind, POSEFILE_VERSION, file_digest(media)]
+        return [kind, POSEFILE_VERSION, media_digest(media)]
     if kind == "spelled":
         from m3t.corpora.fingerspelling import spelled_paths
 
-        return [kind, POSEFILE_VERSION, clip.fps, [file_digest(p) for p in spelled_paths(clip, root)]]
+        return [kind, POSEFILE_VERSION, clip.fps, [media_digest(p) for p in spelled_paths(clip, root)]]
     if kind in ("video", "frames"):
-        content = _folder_stamp(media) if media.is_dir() else file_digest(media)
+        content = _folder_stamp(media) if media.is_dir() else media_digest(media)
         return [kind, dataclasses.asdict(mediapipe_cfg) if mediapipe_cfg is not None else None, clip.fps, content]
     if kind in REFUSED:
         raise ClipRefused(f"{kind} not trackable", f"clip {clip.id} ({clip.media}): {REFUSED[kind]}")

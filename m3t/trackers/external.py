@@ -53,7 +53,6 @@ Axis legend: N detections, T frames.
 """
 from __future__ import annotations
 
-import hashlib
 import pickle
 import zipfile
 from dataclasses import dataclass
@@ -66,7 +65,7 @@ import torch
 
 from m3t.body.model_files import ModelFileError, load_pickle_safely
 from m3t.body.rotations import matrix_to_6d
-from m3t.trackers.dispatch import file_digest
+from m3t.digest import chunks_digest, file_digest
 
 REFLECT_X = np.diag([-1.0, 1.0, 1.0])
 
@@ -316,14 +315,14 @@ class TrackerOutputs:
         Files in the Pixel3DMM folder that are not read (meshes, renders) do not count."""
         if not self.any():
             return "none"
-        h = hashlib.sha256(b"m3t tracker outputs v1")
+        chunks = [b"m3t tracker outputs v1"]
         for name, files in self.files().items():
-            h.update(f"\0{name}\0{len(files)}".encode())
+            chunks.append(f"\0{name}\0{len(files)}".encode())
             for f in files:
                 if not f.is_file():
                     raise TrackerFileError(f"{name} output {f} does not exist (a broken link?)")
-                h.update(f"\0{f.name}\0{file_digest(f)}".encode())
-        return h.hexdigest()
+                chunks.append(f"\0{f.name}\0{file_digest(f)}".encode())
+        return chunks_digest(chunks)
 
 
 def _inside(path: Path, folder: Path) -> bool:

@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from m3t.body.metric_sets import HAND_POINTS as METRIC_HAND_POINTS
-from m3t.body.skeleton import POSE_LANDMARKS
+from m3t.body.landmarks import HAND_LANDMARKS, POSE_LANDMARKS
 from m3t.corpora.base import CorpusError
 from m3t.corpora.posefile import PoseData, pose_data, read_pose
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
@@ -32,7 +31,7 @@ from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 # MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order) as pose-format writes them:
 # the body layer's lists, upper-case.
 POSE_POINTS = tuple(name.upper() for name in POSE_LANDMARKS)
-HAND_POINTS = tuple(name.upper() for name in METRIC_HAND_POINTS)
+HAND_POINTS = tuple(name.upper() for name in HAND_LANDMARKS)
 FACE_POINTS = tuple(str(i) for i in range(MEDIAPIPE_HOLISTIC_PARTS["face"]))
 COMPONENTS = {  # track part -> (.pose component, point names in the track's order)
     "pose": ("POSE_LANDMARKS", POSE_POINTS),

@@ -202,7 +202,7 @@ def test_corpus_is_written_through_a_hidden_temporary_sibling(tmp_path, monkeypa
         seen.append((Path(src), Path(dst), sorted(os.listdir(Path(dst).parent))))
         return real_replace(src, dst)
 
-    monkeypatch.setattr(synthetic.os, "replace", spy)
+    monkeypatch.setattr(os, "replace", spy)  # the swap is m3t.atomic.replace_dir's
     synthetic.write_corpus([_tiny_clip(0)], root)
     (src, dst, entries), = seen
     assert dst == root and src.parent == root.parent and src.name.startswith(".synthetic.")

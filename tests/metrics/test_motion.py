@@ -12,6 +12,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from m3t.body.similarity import rotation_from_covariance, similarity_align
 from m3t.metrics.dtw import dtw, dtw_batch, jpe_distance_matrix
 from m3t.metrics.motion import (
     MotionMetricsConfig,
@@ -19,11 +20,7 @@ from m3t.metrics.motion import (
     sequence_metrics,
     summarise,
 )
-from m3t.metrics.procrustes import (
-    pa_distance_matrix,
-    rotation_from_covariance,
-    similarity_align,
-)
+from m3t.metrics.procrustes import pa_distance_matrix
 
 # ---------------------------------------------------------------- brute-force reference (SOKE's definitions)
 
@@ -295,7 +292,7 @@ def test_summarise_rejects_empty_and_mismatched():
 def test_zero_weights_drop_points_and_negative_or_all_zero_weights_are_refused():
     """Umeyama's weighted problem: a point of weight 0 must not move the fit (the same transform as without the
     point), a negative weight or an all-zero set is refused."""
-    from m3t.metrics.procrustes import similarity_transform
+    from m3t.body.similarity import similarity_transform
 
     gen = torch.Generator().manual_seed(3)
     source = torch.randn(6, 3, generator=gen, dtype=torch.float64)
@@ -357,16 +354,16 @@ def test_quaternion_solver_falls_back_on_collinear_points_at_any_scale(size):
 def test_quaternion_solver_solves_well_conditioned_frames_without_the_svd(monkeypatch):
     """The SVD is the slow fallback (5x or worse on CPU): generic point sets never reach it, in metres or in
     millimetres; collinear ones do."""
-    from m3t.metrics import procrustes
+    from m3t.body import similarity
 
     solved = []
-    svd = procrustes._rotation_svd
+    svd = similarity._rotation_svd
 
     def counting(cov):
         solved.append(cov.shape[:-2].numel())
         return svd(cov)
 
-    monkeypatch.setattr(procrustes, "_rotation_svd", counting)
+    monkeypatch.setattr(similarity, "_rotation_svd", counting)
     rng = np.random.default_rng(13)
     pred, gt = motion(rng, 9, 12), motion(rng, 7, 12)
     pa = pa_distance_matrix(T(pred), T(gt)).numpy()
@@ -680,7 +677,7 @@ def test_native_dtw_of_float32_or_integer_cost_matrices_accumulates_in_float64()
 def test_quaternion_solve_converges_to_the_top_eigenvalue_of_horns_matrix_to_rounding_level():
     """tr(R S) of the optimal rotation is the largest eigenvalue of Horn's matrix; Newton's quadratic convergence
     puts it there to a few ulps on well-conditioned sets (a wrong derivative converges too, but only to ~1e-13)."""
-    from m3t.metrics import procrustes
+    from m3t.body import similarity
 
     torch.manual_seed(0)
     x = torch.randn(2000, 10, 3, dtype=torch.float64)
@@ -689,9 +686,9 @@ def test_quaternion_solve_converges_to_the_top_eigenvalue_of_horns_matrix_to_rou
     cov = torch.einsum("nki,nkj->ijn", x, y).contiguous()  # component-first (3, 3, N)
     upper = torch.minimum((x.square().sum((1, 2)) * y.square().sum((1, 2))).sqrt(),
                           (3.0 * cov.square().sum((0, 1))).sqrt()).contiguous()
-    horn = torch.stack([torch.stack(row, 0) for row in procrustes._horn_matrix(cov)], 0).permute(2, 0, 1)
+    horn = torch.stack([torch.stack(row, 0) for row in similarity._horn_matrix(cov)], 0).permute(2, 0, 1)
     top = torch.linalg.eigvalsh(horn)[:, -1]
-    rotation, trace, ill = procrustes._rotation_quaternion(cov, upper)
+    rotation, trace, ill = similarity._rotation_quaternion(cov, upper)
     assert not bool(ill.any())
     assert float(((trace - top).abs() / top.abs()).max()) < 1e-14
     assert torch.allclose(torch.einsum("ijn,jin->n", rotation, cov), trace, rtol=1e-12, atol=0)

@@ -11,14 +11,10 @@ import roma
 import torch
 from builders import smooth_motion
 
-from m3t.body.build_correspondence import umeyama
+from m3t.body.similarity import similarity_align, similarity_transform
 from m3t.fitting import evaluate as fitting_evaluate
 from m3t.metrics.motion import evaluate_pairs, summarise
-from m3t.metrics.procrustes import (
-    procrustes_error_mm,
-    similarity_align,
-    similarity_transform,
-)
+from m3t.metrics.procrustes import procrustes_error_mm
 from m3t.metrics.scorer import MotionPair, MotionScorer
 from m3t.metrics.text import translation_metrics, translation_metrics_by_language
 from m3t.metrics.vertices import vertex_errors_mm
@@ -140,21 +136,27 @@ def test_fitting_and_vertex_pa_errors_are_the_one_procrustes():
     assert procrustes_error_mm(pred.float(), truth.float()) == pytest.approx(one, rel=1e-6)  # solved in float64
 
 
+@pytest.mark.parametrize("method", ["quaternion", "svd"])
 @pytest.mark.parametrize("weighted", [False, True])
-def test_correspondence_umeyama_is_the_one_similarity_transform(weighted):
+def test_similarity_transform_recovers_closed_form_cases_without_reflecting(method, weighted):
+    """An exact similarity (scale 1.4, 0.7 rad about z, a shift) is recovered whatever the weights; a planar set
+    onto its mirror image (x -> -x) gets the proper rotation that matches it exactly, a half turn about y."""
     rng = np.random.default_rng(1)
     src = rng.normal(size=(12, 3))
-    mirror = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    mirror *= -np.sign(np.linalg.det(mirror))  # det -1: the best fit would reflect; both keep a proper rotation
-    dst = 1.4 * src @ mirror.T + 0.02 * rng.normal(size=(12, 3))
-    weights = rng.uniform(0.1, 3.0, size=12) if weighted else None
-    scale, rot, trans = umeyama(src, dst, weights)
-    one = similarity_transform(torch.as_tensor(src), torch.as_tensor(dst),
-                               weights=None if weights is None else torch.as_tensor(weights))
-    assert np.linalg.det(one.rotation.numpy()) == pytest.approx(1.0)
-    np.testing.assert_allclose(one.rotation.numpy(), rot, atol=1e-10)
-    assert float(one.scale) == pytest.approx(scale, rel=1e-10)
-    np.testing.assert_allclose(one.translation.numpy(), trans, atol=1e-10)
+    weights = torch.as_tensor(rng.uniform(0.1, 3.0, size=12)) if weighted else None
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    shift = np.array([0.3, -0.2, 0.5])
+    fit = similarity_transform(torch.as_tensor(src), torch.as_tensor(1.4 * src @ rot.T + shift), method, weights)
+    np.testing.assert_allclose(fit.rotation.numpy(), rot, atol=1e-12)
+    assert float(fit.scale) == pytest.approx(1.4, rel=1e-12)
+    np.testing.assert_allclose(fit.translation.numpy(), shift, atol=1e-12)
+
+    planar = src * [1.0, 1.0, 0.0]
+    fit = similarity_transform(torch.as_tensor(planar), torch.as_tensor(planar * [-1.0, 1.0, 1.0]), method, weights)
+    np.testing.assert_allclose(fit.rotation.numpy(), np.diag([-1.0, 1.0, -1.0]), atol=1e-12)
+    assert float(fit.scale) == pytest.approx(1.0, rel=1e-12)
+    np.testing.assert_allclose(fit.translation.numpy(), 0.0, atol=1e-12)
 
 
 def test_uniform_weights_are_the_unweighted_problem_and_bad_weights_name_the_fix():

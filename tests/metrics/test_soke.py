@@ -24,9 +24,10 @@ import torch
 from m3t.body.metric_sets import BODY_POINTS
 from m3t.body.protocol import Modality, ModalityLayout
 from m3t.body.rotations import identity_6d
+from m3t.body.similarity import similarity_transform
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs
-from m3t.metrics.procrustes import pa_distance_matrix, similarity_transform
+from m3t.metrics.procrustes import pa_distance_matrix
 from m3t.metrics.scorer import MotionPair, MotionScorer
 from m3t.metrics.soke import SMPLX_VERTEX_JOINTS, SOKE_ZEROED_JOINTS, SokeModeError, zero_soke_joints
 

@@ -5,16 +5,14 @@ Every import counts, including those inside functions (they run too). Failures n
 """
 from __future__ import annotations
 
-import ast
 import re
-from functools import cache
 from pathlib import Path
 
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("m3t", "flows", "dashboards")
+import tools.code_deps as code_deps_module
+from tools.code_deps import DVC_YAML, ROOT, code_deps, imports, is_code, modules, rewrite, stage_modules
 
 # Lowest first; a module may import from its own layer and the layers below it. The body model is the
 # foundation every other component computes with; shards (the data contract) sit below fitting, which writes
@@ -22,7 +20,9 @@ PACKAGES = ("m3t", "flows", "dashboards")
 # them; models (smlm, slr, backtranslation and the coming sgsa) sit above tokenizers; the claims read every
 # model's runs.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment")),
+    ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment", "m3t.dataclass_io",
+              "m3t.reporting", "m3t.digest",
+              "m3t.positional_encoding", "m3t.vocabulary")),
     ("body", ("m3t.body",)),
     ("corpora", ("m3t.corpora",)),
     ("trackers", ("m3t.trackers",)),
@@ -41,16 +41,6 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 
-def module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-@cache
-def modules() -> dict[str, Path]:
-    return {module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
-
-
 def layer_of(module: str) -> int:
     best, rank = "", -1
     for i, (_, prefixes) in enumerate(LAYERS):
@@ -62,29 +52,6 @@ def layer_of(module: str) -> int:
         raise AssertionError(f"module {module} is in no layer of tests/project/test_architecture.py; "
                              "add its package there")
     return rank
-
-
-@cache
-def imports(module: str) -> tuple[tuple[str, int], ...]:
-    """(imported project module, line) of every import statement in ``module``."""
-    known = modules()
-    path = known[module]
-    out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            # `from pkg import sub` imports the module pkg.sub when it is one
-            names = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in known else node.module
-                     for a in node.names]
-        else:
-            continue
-        for name in names:
-            while name and name not in known:
-                name = name.rpartition(".")[0]
-            if name and name.split(".")[0] in PACKAGES and name != module:
-                out.append((name, node.lineno))
-    return tuple(sorted(set(out)))
 
 
 def where(module: str, line: int) -> str:
@@ -131,43 +98,42 @@ def test_no_import_cycle():
     assert not cycles, "import cycles:\n" + "\n".join(lines)
 
 
-def closure(module: str) -> set[str]:
-    seen, todo = set(), [module]
-    while todo:
-        m = todo.pop()
-        if m in seen:
-            continue
-        seen.add(m)
-        todo.extend(t for t, _ in imports(m))
-    return seen
+@pytest.mark.parametrize("stage", sorted(stage_modules(DVC_YAML.read_text())))
+def test_dvc_deps_are_the_code_a_stage_runs(stage):
+    """A stage's code deps are exactly the project modules its entry point imports (transitively), as
+    ``tools/code_deps.py`` writes them: a code change reruns exactly the stages it can affect."""
+    declared = [str(d) for d in yaml.safe_load(DVC_YAML.read_text())["stages"][stage].get("deps", [])]
+    code = [d for d in declared if is_code(d)]
+    expected = code_deps(stage_modules(DVC_YAML.read_text())[stage])
+    missing, unused = sorted(set(expected) - set(code)), sorted(set(code) - set(expected))
+    assert not missing and not unused, (
+        f"dvc.yaml stage {stage}: code deps out of date (run python tools/code_deps.py)\n"
+        f"  runs but does not declare: {missing}\n  declares but never imports: {unused}")
 
 
-def stage_modules() -> dict[str, str]:
-    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
-    out = {}
-    for name, stage in stages.items():
-        found = re.search(r"-m ((?:m3t\.stages|dashboards)\.\w+)", stage["cmd"])
-        assert found, f"dvc.yaml stage {name}: cmd {stage['cmd']!r} does not run a m3t.stages (or dashboards) module"
-        out[name] = found.group(1)
-    return out
-
-
-@pytest.mark.parametrize("stage", sorted(stage_modules()))
-def test_dvc_deps_cover_the_code_a_stage_runs(stage):
-    """A stage's deps cover every project module its entry point imports (transitively), so that a code
-    change reruns exactly the stages it can affect; deps on code it never imports would rerun it for nothing."""
-    spec = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage]
-    deps = [str(d) for d in spec.get("deps", [])]
-    code_deps = [d.rstrip("/") for d in deps if d.split("/")[0] in PACKAGES]
-    files = sorted(str(modules()[m].relative_to(ROOT)) for m in closure(stage_modules()[stage]))
-
-    def covered(file: str) -> bool:
-        return any(file == d or file.startswith(d + "/") for d in code_deps)
-
-    missing = [f for f in files if not covered(f)]
-    assert not missing, f"dvc.yaml stage {stage} runs code it does not declare; add to its deps:\n" + "\n".join(missing)
-    unused = [d for d in code_deps if not any(f == d or f.startswith(d + "/") for f in files)]
-    assert not unused, f"dvc.yaml stage {stage} declares code it never imports: {unused}"
+def test_code_deps_follow_imports_inside_functions(tmp_path, monkeypatch):
+    """The walk counts every import statement, also one inside a function, and follows it transitively."""
+    pkg = tmp_path / "m3t"
+    (pkg / "stages").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "stages" / "__init__.py").write_text("")
+    (pkg / "stages" / "run.py").write_text("def main():\n    from m3t.lib import f\n    return f()\n")
+    (pkg / "lib.py").write_text("import m3t.deep\n\ndef f():\n    return 1\n")
+    (pkg / "deep.py").write_text("")
+    (pkg / "unused.py").write_text("")
+    monkeypatch.setattr(code_deps_module, "ROOT", tmp_path)
+    for fn in (code_deps_module.modules, code_deps_module.imports):
+        fn.cache_clear()
+    try:
+        # packages' __init__ files count when imported by name (they hold no code of their own here)
+        assert code_deps("m3t.stages.run") == ["m3t/deep.py", "m3t/lib.py", "m3t/stages/run.py"]
+        text = ("stages:\n  run:\n    cmd: python -m m3t.stages.run\n    deps:\n    - data/in\n"
+                "    - m3t/unused.py\n    outs:\n    - data/out\n")
+        assert rewrite(text) == ("stages:\n  run:\n    cmd: python -m m3t.stages.run\n    deps:\n    - data/in\n"
+                                 "    - m3t/deep.py\n    - m3t/lib.py\n    - m3t/stages/run.py\n    outs:\n    - data/out\n")
+    finally:
+        for fn in (code_deps_module.modules, code_deps_module.imports):
+            fn.cache_clear()
 
 
 def test_training_stages_depend_on_every_training_corpus():

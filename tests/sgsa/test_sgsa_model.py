@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from m3t.backtranslation.model import sinusoid_table
+from m3t.positional_encoding import sinusoid_table
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch
 from m3t.sgsa.train import losses
