@@ -44,7 +44,7 @@ def params_for(out: Path, corpus: Path, clips: int, workers: int, batch_clips: i
 
 def warm_up(job) -> None:
     """On a worker: the imports and the body model that its first clip would otherwise pay for."""
-    from m3t.fitting.corpus import worker_context
+    from m3t.fitting.context import worker_context
 
     worker_context(job).body
 
@@ -99,7 +99,8 @@ def main() -> None:
 
     from m3t.body.anny_body import AnnyBody
     from m3t.config import load_params
-    from m3t.corpora.synthetic import generate_corpus, write_corpus
+    from m3t.corpora.synthetic import generate_corpus
+    from m3t.corpora.synthetic_storage import write_corpus
 
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-fit-dask-") as tmp:

@@ -60,7 +60,7 @@ from report import write_and_log  # noqa: E402
 from m3t.body.anny_body import AnnyBody  # noqa: E402
 from m3t.body.protocol import KeypointIndex  # noqa: E402
 from m3t.config import load_params  # noqa: E402
-from m3t.corpora.synthetic import SyntheticCorpus  # noqa: E402
+from m3t.corpora.synthetic_storage import SyntheticCorpus  # noqa: E402
 from m3t.fitting.evaluate import ground_truth_errors  # noqa: E402
 from m3t.fitting.fit import fit_track, fit_tracks  # noqa: E402
 from m3t.body.protocol import as_tensors  # noqa: E402

@@ -1,5 +1,5 @@
 """Adam's step on the pipeline's trained models: torch's default (foreach, ``old``) vs its fused kernel
-(``new``, :func:`m3t.training.adam`, what every trainer uses), in the same run.
+(``new``, :func:`m3t.optimizer.adam`, what every trainer uses), in the same run.
 
 For each checkpoint of the embedded pipeline (tokenizers, SMLM, back-translation judge, PT / SGSA, recognition
 probe): the model's parameters get fixed random gradients, then each arm runs ``--steps`` optimiser steps
@@ -27,7 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from m3t.config import load_params  # noqa: E402
-from m3t.training import adam  # noqa: E402
+from m3t.optimizer import adam  # noqa: E402
 from report import write_and_log  # noqa: E402
 
 

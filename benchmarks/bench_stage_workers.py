@@ -1,5 +1,5 @@
 """Training stages whose independent trainings run one after another on every thread (old, ``workers: 1``) vs in
-worker processes sharing the threads (new, :func:`m3t.training.run_jobs`), on the embedded shards, same settings
+worker processes sharing the threads (new, :func:`m3t.training_jobs.run_jobs`), on the embedded shards, same settings
 otherwise: train-tokenizers (its groups, ``tokenizer_train.group_workers``), train-backtranslation and
 train-backtranslation-skeleton (their languages, ``backtranslation_train.workers``), train-slr (its variants,
 ``slr_train.workers``) and train-sgsa (its systems, ``sgsa_train.workers``).

@@ -28,7 +28,7 @@ from m3t.shards.io import read_shard  # noqa: E402
 from m3t.tokenizers.data import WindowSampler, clip_sequences  # noqa: E402
 from m3t.tokenizers.config import TokenizerConfig  # noqa: E402
 from m3t.tokenizers.train import train_step  # noqa: E402
-from m3t.training import adam, lr_factor  # noqa: E402
+from m3t.optimizer import adam, lr_factor  # noqa: E402
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters  # noqa: E402
 from report import write_and_log  # noqa: E402
 

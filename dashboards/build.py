@@ -19,10 +19,17 @@ import shutil
 from pathlib import Path
 
 from dashboards import html as h
-from dashboards import sections
+from dashboards.sections.claims import claims, repeatability, saved_claims, sgsa_study
+from dashboards.sections.codebooks import codebooks
+from dashboards.sections.curves import curves
+from dashboards.sections.quality import quality
+from dashboards.sections.runs import overview, runs_page
+from dashboards.sections.tables import paper_tables
+from dashboards.sections.videos import videos
 from m3t.atomic import replace_dir
 from m3t.config import Params, load_params
 from m3t.experiment import fetch_runs
+from m3t.shards.folders import DataConfig
 
 
 def build_dashboard(params: Params, out: str | Path | None = None, root: str | Path = ".") -> Path:
@@ -30,7 +37,8 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
     ``index.html``."""
     out = Path(out or params.experiment.dashboard_dir)
     runs = fetch_runs(params.experiment, root)
-    study_claims = Path(params.data.metrics_dir) / "study" / "claims.json"  # `m3t study`'s verdicts, when judged
+    data: DataConfig = params.data
+    study_claims = Path(data.metrics_dir) / "study" / "claims.json"  # `m3t study`'s verdicts, when judged
     generated = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     tmp = out.with_name(out.name + ".tmp")
     if tmp.exists():
@@ -40,18 +48,18 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
 
     (tmp / "assets" / "plotly.min.js").write_text(get_plotlyjs(), encoding="utf-8")
     pages = {
-        "index.html": ("M3T platform", sections.overview(runs, params, root), False),
-        "tables.html": ("Paper tables", sections.paper_tables(runs), False),
-        "curves.html": ("Training curves", sections.curves(runs, params.experiment, root), True),
-        "claims.html": ("The papers' claims on these runs", sections.claims(runs) + (sections.saved_claims(
+        "index.html": ("M3T platform", overview(runs, params, root), False),
+        "tables.html": ("Paper tables", paper_tables(runs), False),
+        "curves.html": ("Training curves", curves(runs, params.experiment, root), True),
+        "claims.html": ("The papers' claims on these runs", claims(runs) + (saved_claims(
             study_claims, "The claims study: every claim over 5 seeds on the study corpus", "m3t study")
-            if study_claims.exists() else "") + sections.sgsa_study(
-            Path(params.data.metrics_dir) / "sgsa-claims" / "claims.json")
-            + sections.repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
-        "codebooks.html": ("Codebooks: utilisation and token histograms", sections.codebooks(runs, params), True),
-        "quality.html": ("Data quality per corpus", sections.quality(params), True),
-        "videos.html": ("Videos: reference vs each model, per test clip", sections.videos(runs, tmp / "media"), False),
-        "runs.html": ("Runs", sections.runs_page(runs), False),
+            if study_claims.exists() else "") + sgsa_study(
+            Path(data.metrics_dir) / "sgsa-claims" / "claims.json")
+            + repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
+        "codebooks.html": ("Codebooks: utilisation and token histograms", codebooks(runs, params), True),
+        "quality.html": ("Data quality per corpus", quality(params), True),
+        "videos.html": ("Videos: reference vs each model, per test clip", videos(runs, tmp / "media"), False),
+        "runs.html": ("Runs", runs_page(runs), False),
     }
     for name, (title, body, plots) in pages.items():
         (tmp / name).write_text(h.page(name, title, body, generated, plots), encoding="utf-8")

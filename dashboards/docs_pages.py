@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from m3t.atomic import write_text
-from m3t.claims import interval_cell, means_cell
+from m3t.claims.report import interval_cell, means_cell
 from m3t.reporting import markdown_table
 from m3t.reporting import significant as num
 

@@ -21,7 +21,8 @@ from m3t.config import Params, load_params
 from m3t.experiment import extra_tags
 from m3t.sgsa import pipeline as sgsa
 from m3t.slr import pipeline as slr
-from m3t.smlm import pipeline as smlm
+from m3t.smlm.evaluate_run import evaluate_and_log as evaluate_smlm
+from m3t.smlm.generate_run import generate as generate_smlm
 from m3t.stages import shards_version
 from m3t.tokenizers import pipeline as tokenizers
 
@@ -37,8 +38,8 @@ def _families(params: Params) -> list[tuple[str, str, bool, Callable[[], dict]]]
     p, data = params, params.data
 
     def smlm_evaluation() -> dict:
-        smlm.generate(p.smlm_generate, data, p.body, progress=False)
-        return smlm.evaluate_and_log(p.smlm_generate, data, p.body, p.experiment, p.backtranslation)
+        generate_smlm(p.smlm_generate, data, p.body, progress=False)
+        return evaluate_smlm(p.smlm_generate, data, p.body, p.experiment, p.backtranslation)
 
     return [
         ("tokenizers", "train-tokenizers", _has(data.tokenizers_dir),

@@ -4,7 +4,7 @@
 - ``evaluate-smlm``: generate + evaluate with the current checkpoint only (deployment
   ``evaluate-smlm/embedded``; the nightly schedule re-evaluates every model family: ``evaluate/nightly``).
 
-Thin tasks over :mod:`m3t.smlm.pipeline`; training is not retried (a failure there is not transient), the
+Thin tasks over the SMLM runs (:mod:`m3t.smlm.train_run`, :mod:`m3t.smlm.generate_run`, :mod:`m3t.smlm.evaluate_run`); training is not retried (a failure there is not transient), the
 generation / evaluation tasks are (they read and write files).
 """
 from __future__ import annotations
@@ -14,24 +14,24 @@ from prefect.cache_policies import NO_CACHE
 
 from m3t.config import Params, load_params
 from m3t.experiment import extra_tags
-from m3t.smlm import pipeline
+from m3t.smlm import evaluate_run, generate_run, train_run
 from m3t.stages import shards_version
 
 
 @task(cache_policy=NO_CACHE)
 def train_smlm(params: Params) -> dict:
-    return pipeline.train_and_log(params.smlm, params.smlm_train, params.body, params.data, params.experiment,
+    return train_run.train_and_log(params.smlm, params.smlm_train, params.body, params.data, params.experiment,
                                   progress=False)
 
 
 @task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
 def generate(params: Params) -> dict:
-    return pipeline.generate(params.smlm_generate, params.data, params.body, progress=False)
+    return generate_run.generate(params.smlm_generate, params.data, params.body, progress=False)
 
 
 @task(retries=1, retry_delay_seconds=2, cache_policy=NO_CACHE)
 def evaluate(params: Params) -> dict:
-    return pipeline.evaluate_and_log(params.smlm_generate, params.data, params.body, params.experiment,
+    return evaluate_run.evaluate_and_log(params.smlm_generate, params.data, params.body, params.experiment,
                                      params.backtranslation)
 
 

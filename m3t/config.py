@@ -4,29 +4,40 @@
 (``tiny`` for tests, ``paper`` for the papers' hyper-parameters; ``default`` is params.yaml itself), and
 checks every key and type: an unknown key or a wrong type stops with a message naming ``section.key`` and
 what is allowed. Components receive only their own section (``params.fitting``), never the whole tree.
+
+Each section's class is named by its import path in :data:`SECTIONS` and imported when params are loaded, not
+when this module is: a DVC stage's code deps are then what it runs, so a changed SGSA default reruns the stages
+that read ``sgsa`` and not ``generate-corpus`` (``tests/project/test_architecture.py`` checks that every stage
+imports the config module of each section it declares in ``dvc.yaml``).
 """
 from __future__ import annotations
 
-import typing
-from dataclasses import dataclass, fields
+import importlib
+from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from m3t.backtranslation.config import BackTranslationConfig, BackTranslationTrainConfig
-from m3t.body.config import BodyConfig
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
-from m3t.corpora.config import SyntheticCorpusConfig
 from m3t.dataclass_io import build_dataclass, coerce
-from m3t.experiment import ExperimentConfig
-from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
-from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
-from m3t.shards.folders import DataConfig
-from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
-from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
-from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
-from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
+
+if TYPE_CHECKING:  # for readers and type checkers; at run time the classes come from SECTIONS
+    from m3t.backtranslation.config import (
+        BackTranslationConfig,
+        BackTranslationTrainConfig,
+    )
+    from m3t.body.config import BodyConfig
+    from m3t.corpora.config import SyntheticCorpusConfig
+    from m3t.experiment import ExperimentConfig
+    from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
+    from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
+    from m3t.shards.folders import DataConfig
+    from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
+    from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
+    from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig
+    from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 
 PRESET_DIR = Path(__file__).parent / "presets"
 PRESETS = ("default", "tiny", "paper", "study")
@@ -70,12 +81,52 @@ class Params:
         if name not in self.corpora:
             raise ConfigError(f"corpora.{name} is not in params.yaml; add it with root and options "
                               "(see the commented examples there)")
-        return FitJob(name, self.corpora[name], str(self.data.shards_dir(name)), self.fit_corpus, self.body,
-                      self.fitting, self.tracker, self.mediapipe, self.fusion)
+        fit_job = _resolve("m3t.fitting.config:FitJob")
+        return fit_job(name, self.corpora[name], str(self.data.shards_dir(name)), self.fit_corpus, self.body,
+                       self.fitting, self.tracker, self.mediapipe, self.fusion)
 
 
-_HINTS = typing.get_type_hints(Params)
-SECTIONS: dict[str, Any] = {f.name: _HINTS[f.name] for f in fields(Params)}  # section -> its config class
+# section -> "module:class" of its config dataclass, in params.yaml order; ``corpora`` is checked by
+# _check_corpora against each adapter's own options class
+SECTIONS: dict[str, str] = {
+    "data": "m3t.shards.folders:DataConfig",
+    "experiment": "m3t.experiment:ExperimentConfig",
+    "synthetic_corpus": "m3t.corpora.config:SyntheticCorpusConfig",
+    "body": "m3t.body.config:BodyConfig",
+    "tracker": "m3t.trackers.config:SimulatedTrackerConfig",
+    "fitting": "m3t.fitting.config:FittingConfig",
+    "fit_corpus": "m3t.fitting.config:FitCorpusConfig",
+    "mediapipe": "m3t.trackers.config:MediaPipeConfig",
+    "fusion": "m3t.fitting.config:FusionConfig",
+    "tokenizer": "m3t.tokenizers.config:TokenizerConfig",
+    "tokenizer_train": "m3t.tokenizers.config:TokenizerTrainConfig",
+    "backtranslation": "m3t.backtranslation.config:BackTranslationConfig",
+    "backtranslation_train": "m3t.backtranslation.config:BackTranslationTrainConfig",
+    "smlm": "m3t.smlm.config:SMLMConfig",
+    "smlm_train": "m3t.smlm.config:SMLMTrainConfig",
+    "smlm_generate": "m3t.smlm.config:GenerateConfig",
+    "slr": "m3t.slr.config:SLRConfig",
+    "slr_train": "m3t.slr.config:SLRTrainConfig",
+    "slr_evaluate": "m3t.slr.config:SLREvaluateConfig",
+    "sgsa": "m3t.sgsa.config:SGSAConfig",
+    "sgsa_train": "m3t.sgsa.config:SGSATrainConfig",
+    "sgsa_evaluate": "m3t.sgsa.config:SGSAEvaluateConfig",
+    "corpora": "",
+}
+
+
+@cache
+def _resolve(path: str) -> Any:
+    module, name = path.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def section_class(section: str) -> type:
+    """The config dataclass of a params.yaml section (imported on first use)."""
+    if not SECTIONS.get(section):
+        raise ConfigError(f"no config class for section {section!r}; sections with one: "
+                          f"{', '.join(s for s, p in SECTIONS.items() if p)}")
+    return _resolve(SECTIONS[section])
 
 
 def build_section(cls: type, values: dict | None, section: str) -> Any:
@@ -104,7 +155,7 @@ def _check_corpora(raw: dict) -> dict:
             raise ConfigError(f"corpora.{name}.options: expected a mapping, got {type(options).__name__}")
         built = build_section(adapter_class(name).config_type, options, f"corpora.{name}.options")
         out[name] = {**entry, "options": {k: getattr(built, k) for k in options}}
-    training = (raw.get("data") or {}).get("train_corpora", DataConfig.train_corpora)
+    training = (raw.get("data") or {}).get("train_corpora", section_class("data").train_corpora)
     missing = [c for c in (training or []) if c not in out]
     if missing:
         raise ConfigError(f"data.train_corpora names {', '.join(missing)}, not listed in corpora; add "
@@ -146,7 +197,10 @@ def params_from_dict(raw: dict) -> Params:
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}; allowed sections: {', '.join(SECTIONS)}")
     raw = {**raw, "corpora": _check_corpora(raw)}
-    return Params(**{name: coerce(raw.get(name) or {}, _HINTS[name], name, ConfigError) for name in SECTIONS})
+    built = {name: coerce(raw.get(name) or {}, section_class(name), name, ConfigError)
+             for name in SECTIONS if name != "corpora"}
+    corpora = coerce(raw["corpora"], dict[str, CorpusSource], "corpora", ConfigError)
+    return Params(**built, corpora=corpora)
 
 
 def load_params(path: str | Path = "params.yaml", preset: str = "default", overrides: dict | None = None) -> Params:

@@ -1,8 +1,9 @@
-"""Training mechanics shared by every trainer (tokenizers, SMLM, SLR, back-translation, SGSA): the warm-up +
-cosine LR schedule, one optimiser step, the self-describing checkpoint file and its record, the epoch loop, and
-the epoch tail: evaluation when due, selection of the ``best`` checkpoint by a named metric, the resumable
-``last`` checkpoint (optimizer, scheduler, RNG), and rank-0-only logging. A trainer keeps only what is its own:
-the model, its batches and its loss.
+"""The epoch loop every trainer (tokenizers, SMLM, SLR, back-translation, SGSA) runs and its tail: evaluation
+when due, selection of the ``best`` checkpoint by a named metric, the resumable ``last`` checkpoint (optimizer,
+scheduler, RNG), and rank-0-only logging; plus the trainers' preamble (device, seed) and shuffled batches. A
+trainer keeps only what is its own: the model, its batches and its loss. The LR schedules and the optimiser step
+are in :mod:`m3t.optimizer`, the checkpoint files in :mod:`m3t.checkpoints`, worker processes in
+:mod:`m3t.training_jobs`.
 
 A trainer, with ``tail = EpochTail(...)`` (and ``tail.resume_saved(...)`` to continue a ``last``)::
 
@@ -15,202 +16,21 @@ from __future__ import annotations
 
 import math
 import os
-import random
 import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Literal, Self, Sequence
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
 
-from m3t.arithmetic import cache_parts
-
-from m3t.atomic import atomic_path, remove_stale_temps, run_lock
-from m3t.digest import bytes_digest, json_digest
+from m3t.atomic import remove_stale_temps, run_lock
+from m3t.checkpoints import rng_state, set_rng_state
 
 if TYPE_CHECKING:
     from m3t.runtime import DistributedContext
-
-
-# ---- schedule and step ----------------------------------------------------------------------------------
-def lr_factor(step: int, warmup_steps: int, total_steps: int, floor: float) -> float:
-    """Multiplier of the base LR at optimiser step ``step``: linear warm-up to 1, then cosine to ``floor``."""
-    if step < warmup_steps:
-        return (step + 1) / warmup_steps
-    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
-def warmup_cosine(optim: torch.optim.Optimizer, epochs: int, steps_per_epoch: int, warmup: int,
-                  warmup_unit: Literal["epochs", "steps"], min_lr: float) -> torch.optim.lr_scheduler.LambdaLR:
-    """The LR schedule of every trainer, stepped once per optimiser step: ``warmup`` epochs or steps (as
-    ``warmup_unit`` says) of linear warm-up, then cosine from the optimiser's LR down to ``min_lr`` at the end
-    of ``epochs * steps_per_epoch`` steps."""
-    if warmup_unit not in ("epochs", "steps"):
-        raise ValueError(f"warmup_unit {warmup_unit!r} unknown; allowed: epochs, steps")
-    total = epochs * steps_per_epoch
-    warm = warmup * steps_per_epoch if warmup_unit == "epochs" else warmup
-    floor = min_lr / optim.defaults["lr"]
-    return torch.optim.lr_scheduler.LambdaLR(optim, lambda s: lr_factor(s, warm, total, floor))
-
-
-def average_gradients(model: torch.nn.Module) -> None:
-    """Mean of every parameter's gradient over the ranks, for a model not wrapped in DDP. A parameter this
-    step did not use gets a zero gradient first, so every rank reduces the same list in the same order."""
-    world = torch.distributed.get_world_size()
-    for p in model.parameters():
-        if p.grad is None:
-            p.grad = torch.zeros_like(p)
-        torch.distributed.all_reduce(p.grad)
-        p.grad /= world
-
-
-def adam(params, device: torch.device | str, decoupled: bool = False, **options: Any) -> torch.optim.Optimizer:
-    """torch's Adam (``decoupled``: AdamW) with ``options``, on its fused kernel where ``device`` has one (CPU,
-    CUDA): one pass over each parameter instead of about ten elementwise kernels per parameter list. The same
-    update, equal up to float rounding; on the embedded CPU runs the unfused step was 11 % of the tokenizers'
-    training time (measured with a sampling profiler)."""
-    cls = torch.optim.AdamW if decoupled else torch.optim.Adam
-    fused = torch.device(device).type in ("cpu", "cuda")
-    return cls(params, fused=True, **options) if fused else cls(params, **options)
-
-
-def optimizer_step(loss: torch.Tensor, model: torch.nn.Module, optim: torch.optim.Optimizer,
-                   scheduler: torch.optim.lr_scheduler.LRScheduler, grad_clip: float = 0.0,
-                   average_grads: bool = False) -> None:
-    """Backward, then (``average_grads`` and a process group up) :func:`average_gradients`, clipping of the
-    gradient norm to ``grad_clip`` (0 = none), the optimiser step and the LR schedule's step."""
-    optim.zero_grad(set_to_none=True)
-    loss.backward()
-    if average_grads and torch.distributed.is_available() and torch.distributed.is_initialized():
-        average_gradients(model)
-    if grad_clip > 0:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
-    optim.step()
-    scheduler.step()
-
-
-# ---- checkpoint files and RNG state ---------------------------------------------------------------------
-def run_digest(*parts: Any) -> str:
-    """16-hex digest naming a resumable run: what its ``last`` checkpoint must agree on to be continued (the
-    trainer's version string, model and training settings, vocabularies, data version). ``parts`` are
-    JSON-dumped with sorted keys; bytes count by their SHA-256, anything else unknown to JSON by ``str``."""
-    return json_digest([*parts, *cache_parts()], length=16,
-                       default=lambda v: bytes_digest(v) if isinstance(v, bytes) else str(v))
-
-
-@dataclass(frozen=True, kw_only=True)
-class CheckpointRecord:
-    """Where a checkpoint stands in its run, stored after its weights: ``epoch``, ``step`` (optimiser steps so
-    far), ``data_version``, ``metrics`` (the epoch's record), ``train_config`` (the training settings) and, in
-    a resumable ``last`` only, ``train_state``. A family's loaded checkpoint extends it with its model and what
-    describes it (``LoadedSMLM(CheckpointRecord)``), built by :meth:`read`."""
-
-    epoch: int
-    step: int
-    data_version: str
-    metrics: dict[str, float]
-    train_config: dict = field(default_factory=dict)
-    train_state: dict[str, Any] | None = None
-
-    def fields(self) -> dict[str, Any]:
-        """The record as a checkpoint stores it, in file order (``train_state`` only when there is one)."""
-        out = {"epoch": int(self.epoch), "step": int(self.step), "data_version": self.data_version,
-               "metrics": {k: float(v) for k, v in self.metrics.items()}, "train_config": dict(self.train_config)}
-        if self.train_state is not None:
-            out["train_state"] = self.train_state
-        return out
-
-    @classmethod
-    def read(cls, payload: dict[str, Any], **own: Any) -> Self:
-        """``cls`` of a checkpoint's ``payload``: its record plus ``own``, the fields a family's subclass adds."""
-        return cls(**own, epoch=payload["epoch"], step=payload["step"], data_version=payload["data_version"],
-                   metrics=dict(payload["metrics"]), train_config=dict(payload.get("train_config", {})),
-                   train_state=payload.get("train_state"))
-
-
-def checkpoint_payload(fmt: str, model: torch.nn.Module, epoch: int, step: int, data_version: str,
-                       metrics: dict[str, float], train_config: dict | None = None,
-                       train_state: dict[str, Any] | None = None, **described: Any) -> dict[str, Any]:
-    """The fields every self-describing checkpoint has: ``format``, what rebuilds the model (``described``:
-    config, dims, vocabularies, ...), the weights on the CPU, then the :class:`CheckpointRecord`."""
-    record = CheckpointRecord(epoch=epoch, step=step, data_version=data_version, metrics=metrics,
-                              train_config=train_config or {}, train_state=train_state)
-    return {"format": fmt, **described, "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-            **record.fields()}
-
-
-def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
-    """``torch.save`` of a checkpoint payload, atomically (a reader never sees half a file). Saved through a
-    file handle: given a path, ``torch.save`` names the zip archive after the (random) temporary file, so
-    the same payload would never give the same bytes, and every digest of a checkpoint would change."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        torch.save(payload, fh)
-    return Path(path)
-
-
-def read_checkpoint(path: str | os.PathLike, fmt: str, kind: str, stage: str,
-                    device: str | torch.device = "cpu") -> dict[str, Any]:
-    """The payload of a self-describing checkpoint of format ``fmt`` (``weights_only`` loading); clear errors
-    for a missing file (run ``stage``), an unreadable one and one of another format."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{kind} checkpoint {path} not found; run `dvc repro {stage}` first")
-    try:
-        payload = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same advice
-        raise ValueError(f"{path}: not a readable {kind} checkpoint ({type(exc).__name__}: {exc}); "
-                         "delete it and retrain") from exc
-    if not isinstance(payload, dict) or payload.get("format") != fmt:
-        found = payload.get("format") if isinstance(payload, dict) else None
-        raise ValueError(f"{path}: not an m3t {kind} checkpoint (format {found!r}, expected {fmt!r})")
-    return payload
-
-
-def rng_state() -> dict[str, Any]:
-    """The global torch (CPU), numpy and python ``random`` generators, in types ``weights_only`` loads."""
-    name, keys, pos, has_gauss, gauss = np.random.get_state()
-    return {"torch": torch.get_rng_state(), "numpy": [name, keys.tolist(), pos, has_gauss, gauss],
-            "python": random.getstate()}
-
-
-def set_rng_state(state: dict[str, Any] | torch.Tensor) -> None:
-    """Restore :func:`rng_state`'s generators (a bare tensor: a torch-only state of older checkpoints)."""
-    if isinstance(state, torch.Tensor):
-        state = {"torch": state}
-    torch.set_rng_state(state["torch"].cpu())
-    if "numpy" in state:
-        name, keys, pos, has_gauss, gauss = state["numpy"]
-        np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, gauss))
-    if "python" in state:
-        version, internal, gauss = state["python"]
-        random.setstate((version, tuple(internal), gauss))
-
-
-class PlateauSchedule:
-    """ReduceLROnPlateau in the shape :func:`optimizer_step` and :class:`EpochTail` expect of a schedule:
-    ``step()`` after each optimiser step does nothing, :meth:`observe` after each validation may cut the LR by
-    ``factor`` once the validation score has not improved (``mode`` ``"min"`` / ``"max"``) for ``patience``
-    validations; ``state_dict`` / ``load_state_dict`` carry it through a ``last`` checkpoint."""
-
-    def __init__(self, optim: torch.optim.Optimizer, mode: Literal["min", "max"], factor: float, patience: int,
-                 min_lr: float):
-        self.plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optim, mode=mode, factor=factor,
-                                                                  patience=patience, min_lr=min_lr)
-
-    def step(self) -> None:
-        pass
-
-    def observe(self, score: float) -> None:
-        self.plateau.step(score)
-
-    def state_dict(self) -> dict[str, Any]:
-        return self.plateau.state_dict()
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.plateau.load_state_dict(state)
 
 
 # ---- the epoch tail -------------------------------------------------------------------------------------
@@ -409,66 +229,3 @@ def run_epochs(tail: EpochTail, model: torch.nn.Module, batches: Callable[[int],
         if after_batches is not None:
             after_batches()
         tail.end_epoch(epoch, {f"train_{k}": average(v) for k, v in stats.items()}, bar)
-
-
-# ---- independent trainings in worker processes ------------------------------------------------------------
-EpochCallback = Callable[[dict[str, float], int], None]
-
-
-def worker_split(workers: int, jobs: int, device: str = "auto", world_size: int = 1) -> tuple[int, int]:
-    """(processes, threads each) for ``jobs`` independent trainings (tokenizer groups, SGSA / PT systems, probe
-    variants, per-language judges): ``workers`` processes at most, one per job, sharing this process's threads;
-    or (1, 0): one after another in this process. Only on the CPU and without DDP (``world_size`` 1): on a GPU
-    one process already keeps the device busy. Small models often keep two threads poorly busy: on the 2-core
-    machine the embedded train-tokenizers ran 1.60x, train-sgsa 1.29x and train-slr 1.12x faster in two
-    one-thread processes, while the judges' languages gained nothing (``benchmarks/bench_stage_workers.py``)."""
-    from m3t.runtime import choose_device
-
-    workers = min(workers, jobs)
-    if workers <= 1 or world_size > 1 or choose_device(device).type != "cpu":
-        return 1, 0
-    return workers, max(1, torch.get_num_threads() // workers)
-
-
-def _job_in_worker(run: Callable[[Any, EpochCallback], Any], job: Any
-                   ) -> tuple[Any, list[tuple[dict[str, float], int]]]:
-    """One job in a worker process (its threads set by the pool); its epoch records come back with its result."""
-    records: list[tuple[dict[str, float], int]] = []
-    result = run(job, lambda record, epoch: records.append((dict(record), epoch)))
-    return result, records
-
-
-def run_jobs(run: Callable[[Any, EpochCallback | None], Any], jobs: list[Any], names: list[str],
-             processes: int = 1, threads: int = 0, on_epoch: Callable[[str, dict[str, float], int], None] | None = None,
-             what: str = "job", setting: str = "workers") -> list[Any]:
-    """``[run(job, on_epoch_of_job) for job in jobs]``: here, one after another (``processes`` 1), or in that
-    many spawned processes of ``threads`` threads each (:func:`worker_split`). A worker's epoch records reach
-    ``on_epoch(name, record, epoch)`` in job order once its job is done; here they reach it as they happen.
-    A job's results are those of one process running it on that many threads, whatever runs beside it.
-
-    In workers, ``run`` and the jobs are pickled: a module-level function (or a ``functools.partial`` of one)
-    and plain data. An error in a job is raised here as it was raised there; a worker that dies (out of memory,
-    a signal) raises RuntimeError naming its ``what`` and ``setting`` (the trainers' ``last`` checkpoints let
-    a rerun resume)."""
-    if len(names) != len(jobs):
-        raise ValueError(f"{len(jobs)} jobs but {len(names)} names")
-    if processes <= 1:
-        return [run(job, None if on_epoch is None else lambda record, epoch, n=name: on_epoch(n, record, epoch))
-                for job, name in zip(jobs, names)]
-    from concurrent.futures.process import BrokenProcessPool
-
-    from m3t.runtime import spawn_pool
-
-    results = []
-    with spawn_pool(processes, threads) as pool:  # a worker whose stage is killed ends itself
-        futures = [pool.submit(_job_in_worker, run, job) for job in jobs]
-        for name, future in zip(names, futures):
-            try:
-                result, records = future.result()
-            except BrokenProcessPool as exc:
-                raise RuntimeError(f"the worker process running {what} {name!r} died ({exc}); rerun to resume from "
-                                   f"the last saved epoch, or set {setting}: 1 to run in this process") from exc
-            for record, epoch in records if on_epoch else ():
-                on_epoch(name, record, epoch)
-            results.append(result)
-    return results

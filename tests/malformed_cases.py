@@ -547,7 +547,7 @@ class _Evil:
 
 
 def nlf_pickle(tmp: Path):
-    from m3t.trackers.external import read_nlf
+    from m3t.trackers.nlf_reader import read_nlf
 
     (tmp / "clip.nlf.pkl").write_bytes(pickle.dumps({"pose": _Evil()}, protocol=2))
     return read_nlf(tmp / "clip.nlf.pkl")
@@ -556,23 +556,23 @@ def nlf_pickle(tmp: Path):
 def nlf_torch(tmp: Path):
     import torch
 
-    from m3t.trackers.external import read_nlf
+    from m3t.trackers.nlf_reader import read_nlf
 
     torch.save({"pose": _Evil()}, tmp / "clip.nlf.pt")
     return read_nlf(tmp / "clip.nlf.pt")
 
 
 def wilor_object_array(tmp: Path):
-    from m3t.trackers.external import read_wilor
+    from m3t.trackers.wilor_reader import read_wilor
 
     np.savez(tmp / "clip.wilor.npz", global_orient=np.array([_Evil()], dtype=object))
     return read_wilor(tmp / "clip.wilor.npz")
 
 
 def nlf_shape(tmp: Path):
-    """NLF's array layout as :mod:`m3t.trackers.external` documents it and ``fusion_fixtures.write_nlf`` writes it
+    """NLF's array layout as :mod:`m3t.trackers.nlf_reader` documents it and ``fusion_fixtures.write_nlf`` writes it
     (``pose`` (N, 165) SMPL-X axis-angles, ``betas`` (N, 10), ``trans`` (N, 3)), with SMPL's 72 pose values."""
-    from m3t.trackers.external import read_nlf
+    from m3t.trackers.nlf_reader import read_nlf
 
     np.savez(tmp / "clip.nlf.npz", pose=np.zeros((4, 72), np.float32), betas=np.zeros((4, 10), np.float32),
              trans=np.zeros((4, 3), np.float32))
@@ -580,7 +580,7 @@ def nlf_shape(tmp: Path):
 
 
 def nlf_truncated(tmp: Path):
-    from m3t.trackers.external import read_nlf
+    from m3t.trackers.nlf_reader import read_nlf
 
     np.savez(tmp / "clip.nlf.npz", pose=np.zeros((4, 165), np.float32), betas=np.zeros((4, 10), np.float32),
              trans=np.zeros((4, 3), np.float32))
@@ -590,7 +590,7 @@ def nlf_truncated(tmp: Path):
 
 
 def pixel3dmm_empty(tmp: Path):
-    from m3t.trackers.external import read_pixel3dmm
+    from m3t.trackers.pixel3dmm_reader import read_pixel3dmm
 
     (tmp / "clip.pixel3dmm" / "checkpoint").mkdir(parents=True)
     return read_pixel3dmm(tmp / "clip.pixel3dmm")
@@ -723,7 +723,7 @@ def checkpoint_case(kind: str):
     def run(tmp: Path):
         import torch
 
-        from m3t.training import read_checkpoint
+        from m3t.checkpoints import read_checkpoint
 
         path = tmp / "tokenizer.pt"
         if kind == "hostile":

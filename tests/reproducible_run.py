@@ -34,7 +34,8 @@ def main(out: Path, workers: int) -> dict[str, str]:
 
     from m3t.body.factory import load_body_model
     from m3t.config import load_params
-    from m3t.corpora.synthetic import generate_corpus, write_corpus
+    from m3t.corpora.synthetic import generate_corpus
+    from m3t.corpora.synthetic_storage import write_corpus
     from m3t.fitting.corpus import fit_and_log
     from m3t.shards.io import read_shard
     from m3t.tokenizers.pipeline import train_and_log

@@ -51,7 +51,7 @@ def write_shards(folder: Path, body, splits: dict[str, int] = SPLITS,
 
 def build_workspace(root: Path, body) -> Workspace:
     from m3t.backtranslation import pipeline as backtranslation
-    from m3t.smlm import pipeline as smlm
+    from m3t.smlm import evaluate_run, generate_run, train_run
     from m3t.tokenizers.pipeline import train_and_log as train_tokenizers
     from m3t.tokenizers.tokenize import run_tokenize
 
@@ -74,7 +74,7 @@ def build_workspace(root: Path, body) -> Workspace:
     run_tokenize(p.data)
     backtranslation.train_and_log(p.backtranslation, p.backtranslation_train, p.data, p.experiment, progress=False)
     backtranslation.evaluate_and_log(p.backtranslation, p.data, p.experiment)
-    smlm.train_and_log(p.smlm, p.smlm_train, p.body, p.data, p.experiment, progress=False)
-    smlm.generate(p.smlm_generate, p.data, p.body, progress=False)
-    smlm.evaluate_and_log(p.smlm_generate, p.data, p.body, p.experiment, p.backtranslation)
+    train_run.train_and_log(p.smlm, p.smlm_train, p.body, p.data, p.experiment, progress=False)
+    generate_run.generate(p.smlm_generate, p.data, p.body, progress=False)
+    evaluate_run.evaluate_and_log(p.smlm_generate, p.data, p.body, p.experiment, p.backtranslation)
     return Workspace(root, params_file, params)

@@ -8,7 +8,8 @@ lines by hand is error-prone, so they are written by this script from the same i
     python tools/code_deps.py          # rewrite dvc.yaml's code deps in place
     python tools/code_deps.py --check  # exit 1 and list the stages whose deps differ
 
-Every import statement counts, including those inside functions (they run too). Only the code lines of each
+Every import statement counts, including those inside functions (they run too); only those under
+``if TYPE_CHECKING:`` do not (they never run). Only the code lines of each
 stage's ``deps:`` list are rewritten: data deps keep their order and come first, comments and everything else
 in ``dvc.yaml`` stay as they are.
 """
@@ -22,7 +23,7 @@ from functools import cache
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("m3t", "flows", "dashboards")
+PACKAGES = ("m3t", "flows", "dashboards", "cli")
 DVC_YAML = ROOT / "dvc.yaml"
 _STAGE_CMD = re.compile(r"-m ((?:m3t\.stages|dashboards)\.\w+)")
 
@@ -45,7 +46,7 @@ def imports(module: str) -> tuple[tuple[str, int], ...]:
     known = modules()
     path = known[module]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in _run_time_nodes(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -60,6 +61,25 @@ def imports(module: str) -> tuple[tuple[str, int], ...]:
             if name and name.split(".")[0] in PACKAGES and name != module:
                 out.append((name, node.lineno))
     return tuple(sorted(set(out)))
+
+
+def _type_checking_only(node: ast.AST) -> bool:
+    test = getattr(node, "test", None)
+    return isinstance(node, ast.If) and (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING"
+                                         or isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _run_time_nodes(tree: ast.AST):
+    """Every node of ``tree`` except the bodies of ``if TYPE_CHECKING:`` blocks (their ``else`` still runs)."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if _type_checking_only(node):
+            todo.extend(node.orelse)
+            todo.append(node.test)
+        else:
+            todo.extend(ast.iter_child_nodes(node))
 
 
 def closure(module: str) -> set[str]:

@@ -17,8 +17,8 @@ from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.data import InputSpec
 from m3t.backtranslation.model import BackTranslationDims, SignToText
 from m3t.backtranslation.text import TextProcessor
+from m3t.checkpoints import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.dataclass_io import build_dataclass
-from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.vocabulary import Vocabulary
 
 FORMAT = "m3t-backtranslation-v1"

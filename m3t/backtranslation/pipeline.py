@@ -44,7 +44,7 @@ from m3t.shards.folders import DataConfig
 from m3t.shards.io import production_data_version, read_production_split, shard_layout
 from m3t.shards.schema import FittedClip, layout_to_json
 from m3t.shards.skeletons import skeleton_clip
-from m3t.training import run_jobs, worker_split
+from m3t.training_jobs import run_jobs, worker_split
 
 PER_CLIP_COLUMNS = ("clip_id", "language", "frames", "reference", "hypothesis", "bleu1", "bleu2", "bleu3", "bleu4",
                     "rouge_l")

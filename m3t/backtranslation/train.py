@@ -33,17 +33,15 @@ from m3t.backtranslation.data import (
 )
 from m3t.backtranslation.decode import translate
 from m3t.backtranslation.model import BackTranslationDims, SignToText
+from m3t.checkpoints import run_digest
 from m3t.metrics.text import slt_translation_metrics
+from m3t.optimizer import PlateauSchedule, adam, optimizer_step
 from m3t.runtime import autocast
 from m3t.training import (
     EpochTail,
-    PlateauSchedule,
     Selection,
     TrainRun,
-    adam,
     epoch_batches,
-    optimizer_step,
-    run_digest,
     run_epochs,
     scalar_settings,
     start_training,

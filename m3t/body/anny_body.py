@@ -15,14 +15,14 @@ Identity: Anny's 6 phenotype parameters (gender, age, muscle, weight, height, pr
 Rotations are Anny's ``local-ref`` parameterisation: each bone's rotation is expressed in body-aligned
 axes, which is what makes :func:`m3t.body.rotations.mirror_rotations` a valid left/right mirror.
 
+The Anny model is built and shared per process by :mod:`m3t.body.anny_model`; stored landmark
+correspondences are read from ``data/anny_<landmark_set>.json`` by :func:`load_correspondence`.
+
 Axis legend: B frames, V vertices, J bones, K keypoints, N blendshapes.
 """
 from __future__ import annotations
 
-import copy
 import json
-import os
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,8 +30,7 @@ import numpy as np
 import roma
 import torch
 
-from m3t.arithmetic import cache_folder
-from m3t.body.anny_targets import fast_target_reader
+from m3t.body.anny_model import DEFAULT_CACHE_DIR, load_anny_model
 from m3t.body.protocol import (
     BodyOutput,
     Correspondence,
@@ -43,7 +42,6 @@ from m3t.body.protocol import (
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 
 DATA_DIR = Path(__file__).parent / "data"
-DEFAULT_CACHE_DIR = Path(".cache") / "anny"
 
 BODY_BONES = (
     "spine03", "spine01", "neck01", "head",
@@ -58,47 +56,6 @@ def hand_bones(side: str) -> tuple[str, ...]:
 
 
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
-
-_MODEL_LOCK = threading.Lock()
-_MODELS: dict[object, object] = {}
-
-
-def _load_anny(cache_dir: Path, device: torch.device | None = None, dtype: torch.dtype = torch.float32):
-    """Build (first time ~20 s, ~800 MB cache) or load the Anny model; one instance per process and
-    (device, dtype), the others copied from the CPU float32 one. Callers never move a returned instance: it is
-    shared by every :class:`AnnyBody` of the process on that device."""
-    key = str(Path(cache_folder(cache_dir)).resolve())  # built anew under M3T_REPRODUCIBLE: it holds computed floats
-    device = torch.device(device or "cpu")
-    with _MODEL_LOCK:
-        if key not in _MODELS:
-            import anny
-            import anny.paths
-
-            Path(key).mkdir(parents=True, exist_ok=True)
-            anny.paths.set_anny_cache_path(key)
-            os.environ.setdefault("ANNY_CACHE_DIR", key)
-            # On one thread: Anny's first build (which writes the cache every later load reads) gives other
-            # blendshape buffers on 2 threads than on 1 (entries up to 32 apart; three 1-thread builds, under
-            # different hash seeds, were identical), and fits depended on which process built the cache (same
-            # code and corpus: shard values up to 3e-3 apart).
-            # Its text targets read in one pass each (m3t.body.anny_targets: the same tensors, ~8x faster).
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
-                with fast_target_reader():
-                    # skinning "lbs": this class skins itself (below); Anny's default probes NVIDIA Warp for its
-                    # skinning, which costs every process ~0.3 s of import and initialisation and a banner
-                    model = anny.Anny(rig="anny", facial_actions="all", pose_parameterization="local-ref",
-                                      skinning_method="lbs")
-            finally:
-                torch.set_num_threads(threads)
-            _MODELS[key] = model.to(torch.float32)
-        variant = (key, str(device), dtype)
-        if (device.type, dtype) == ("cpu", torch.float32):
-            return _MODELS[key]
-        if variant not in _MODELS:
-            _MODELS[variant] = copy.deepcopy(_MODELS[key]).to(device=device, dtype=dtype)
-        return _MODELS[variant]
 
 
 @dataclass(frozen=True)
@@ -128,7 +85,7 @@ class AnnyBody(torch.nn.Module):
 
     def __init__(self, cache_dir: str | Path = DEFAULT_CACHE_DIR):
         super().__init__()
-        model = _load_anny(Path(cache_dir))
+        model = load_anny_model(Path(cache_dir))
         self._cache_dir = Path(cache_dir).resolve()
         # Used for phenotype -> blendshape weights and the kinematic chain only. Kept out of the registered
         # submodules: ``.to()`` would otherwise move the process-wide shared instance and break every other
@@ -187,7 +144,7 @@ class AnnyBody(torch.nn.Module):
         out = super()._apply(fn, recurse)
         if self._anny.template_vertices.device != self.template.device \
                 or self._anny.template_vertices.dtype != self.template.dtype:
-            self.__dict__["_anny"] = _load_anny(self._cache_dir, self.template.device, self.template.dtype)
+            self.__dict__["_anny"] = load_anny_model(self._cache_dir, self.template.device, self.template.dtype)
         return out
 
     # ------------------------------------------------------------------ parameters

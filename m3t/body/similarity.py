@@ -1,5 +1,5 @@
 """Similarity Procrustes (scale + proper rotation + translation), batched: the project's one solver, used by the
-correspondence builder (:mod:`m3t.body.build_correspondence`) and by every PA error (:mod:`m3t.metrics.procrustes`),
+correspondence builder (``tools/build_correspondence.py``) and by every PA error (:mod:`m3t.metrics.procrustes`),
 so it sits in the body layer, the lowest that needs it.
 
 ``similarity_transform`` solves the classic ``compute_similarity_transform`` (Umeyama): the rotation that

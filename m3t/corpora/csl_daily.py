@@ -23,19 +23,11 @@ from dataclasses import dataclass
 from pathlib import PurePosixPath
 from typing import Any
 
-from m3t.corpora.base import (
-    SPLITS,
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    check_header,
-    load_data_pickle,
-    media_folder,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import check_header, load_data_pickle, read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, media_folder, with_kind
+from m3t.corpora.splits import SPLITS
 
 SPLIT_HEADER = "name|split"
 INFO_KEYS = ("name", "length", "label_gloss", "label_char", "label_word", "signer")

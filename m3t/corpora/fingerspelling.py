@@ -27,19 +27,12 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from m3t.corpora.base import (
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    check_fractions,
-    hash_split,
-    hash_unit,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
 from m3t.corpora.posefile import PoseData, components_text, read_pose, read_pose_info
+from m3t.corpora.splits import check_fractions, hash_split, hash_unit
 
 PACKAGE = "spoken_to_signed"
 ASSET_DIR = "assets/fingerspelling_lexicon"

@@ -25,18 +25,10 @@ import math
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from m3t.corpora.base import (
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    check_header,
-    find_file,
-    media_file,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import check_header, find_file, read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, media_file, with_kind
 
 COLUMNS = ("VIDEO_ID", "VIDEO_NAME", "SENTENCE_ID", "SENTENCE_NAME", "START_REALIGNED", "END_REALIGNED", "SENTENCE")
 HEADER = "\t".join(COLUMNS)

@@ -32,16 +32,10 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from m3t.corpora.base import (
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    check_fractions,
-    hash_split,
-    with_kind,
-)
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
+from m3t.corpora.splits import check_fractions, hash_split
 
 FILE_STEM = "shape_pose_cam"
 FLAME_KEYS = ("exp", "jaw", "global_pose", "shape", "cam")

@@ -9,7 +9,7 @@ Layout::
     <root>/video/...           the videos; list paths are relative to video/ (a path that already starts
                                with "video/" is taken relative to the root)
 
-Every list path goes through :func:`m3t.corpora.base.media_path_problem`: absolute paths, ``..`` components and
+Every list path goes through :func:`m3t.corpora.listing.media_path_problem`: absolute paths, ``..`` components and
 symbolic links out of the root are quarantined.
 
 The corpus has no dev split. ``dev_fraction`` > 0 moves train clips to ``dev`` when
@@ -25,17 +25,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import PurePosixPath
 
-from m3t.corpora.base import (
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    hash_unit,
-    media_file,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, media_file, with_kind
+from m3t.corpora.splits import hash_unit
 
 HINT = "Point the corpus root at the NMFs-CSL folder (the one holding dictionary.txt, train.txt, test.txt, video/)."
 SUBSET_HINT = ("NMFs-CSL's confusing / normal subsets are defined only by the official list; set option "

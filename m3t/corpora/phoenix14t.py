@@ -20,18 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from m3t.corpora.base import (
-    SPLITS,
-    Collector,
-    CorpusAdapter,
-    Listing,
-    check_header,
-    find_file,
-    media_folder,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import check_header, find_file, read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, Listing, media_folder, with_kind
+from m3t.corpora.splits import SPLITS
 
 HEADER = "name|video|start|end|speaker|orth|translation"
 FILE_PATTERN = "PHOENIX-2014-T.{split}.corpus.csv"

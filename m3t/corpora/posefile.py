@@ -5,7 +5,7 @@ as long as its header says, so a truncated file is quarantined without decoding 
 optional index CSV (columns ``id,path,split,text,language,signer`` and optional ``label``; ``path`` relative to
 the root) or, without one, one clip per ``*.pose`` under the root with a deterministic hash split. A ``path`` that
 is absolute, has a ``..`` component or leaves the root through a symbolic link is quarantined before the file is
-opened (:func:`m3t.corpora.base.media_path_problem`).
+opened (:func:`m3t.corpora.listing.media_path_problem`).
 """
 from __future__ import annotations
 
@@ -17,18 +17,11 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from m3t.corpora.base import (
-    SPLITS,
-    Collector,
-    CorpusAdapter,
-    CorpusError,
-    Listing,
-    check_fractions,
-    hash_split,
-    read_lines,
-    with_kind,
-)
+from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
+from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
+from m3t.corpora.splits import SPLITS, check_fractions, hash_split
 
 INDEX_COLUMNS = ("id", "path", "split", "text", "language", "signer")
 READ_ERRORS = (struct.error, ValueError, TypeError, EOFError, IndexError, NotImplementedError, UnicodeDecodeError)

@@ -17,7 +17,7 @@ absolute paths. Workers must run this project's code at the same version (the sa
 
 Dask workers fit with one torch thread (one worker process per core; intra-op threads would oversubscribe),
 set on every task so that it also holds on workers that join or restart mid-run, and build their body model once
-per process (:func:`m3t.fitting.corpus.worker_context`). A run keeps at most one task (one clip, or one batch of
+per process (:func:`m3t.fitting.context.worker_context`). A run keeps at most one task (one clip, or one batch of
 a signer's clips: ``fit_corpus.batch_clips``) per worker thread in flight (:meth:`DaskExecutor.capacity`), so a
 worker that dies (out of memory, pre-empted) takes down only what it was fitting: Dask reschedules that task on
 another worker up to ``distributed.scheduler.allowed-failures`` times (Dask config, default 3), then the engine

@@ -17,7 +17,8 @@ one-clip case.
 Four solvers (``fitting.solver``), each after a camera-only stage that places the body in the image using the
 torso and head points:
 
-- ``lbfgs``: L-BFGS with a strong-Wolfe line search and a convergence test (:func:`_minimise`);
+- ``lbfgs``: L-BFGS with a strong-Wolfe line search and a convergence test
+  (:func:`m3t.fitting.solvers.minimise`);
 - ``lbfgs_batched`` (default): the ``lbfgs`` algorithm run for every clip of a batch on its own (its own optimiser,
   line searches, convergence test and identity), one objective evaluation serving them all
   (:func:`m3t.fitting.lbfgs.minimise_batched`): each clip fitted as its own fit would be, at a batch's speed;
@@ -41,8 +42,8 @@ from m3t.body.protocol import BodyModel, Correspondence
 from m3t.body.rotations import matrix_to_6d, sixd_to_matrix
 from m3t.camera import look_at, project
 from m3t.fitting.config import FittingConfig
-from m3t.fitting.lbfgs import lbfgs_rounds, minimise_batched
-from m3t.fitting.lockstep import minimise_rows
+from m3t.fitting.objective import ClipPack, ClipTerms
+from m3t.fitting.solvers import solve
 from m3t.runtime import choose_device
 from m3t.trackers.track import Track, landmark_slices
 
@@ -78,136 +79,6 @@ def _init_extrinsics(body: BodyModel, identity: torch.Tensor, cfg: FittingConfig
     return torch.tensor(rot, dtype=torch.float32), torch.tensor(-rot @ eye, dtype=torch.float32)
 
 
-def reprojection_loss(pred_uv: torch.Tensor, target: torch.Tensor, conf: torch.Tensor, parts: list[slice]) -> torch.Tensor:
-    """Mean over parts of the confidence-weighted squared pixel error; pred/target (T, K, 2), conf (T, K)."""
-    sq = ((pred_uv - target) ** 2).sum(-1) * conf  # (T, K)
-    losses = [sq[:, p].sum() / conf[:, p].sum() for p in parts if conf[:, p].sum() > 0]
-    return torch.stack(losses).mean()
-
-
-def acceleration_loss(points: torch.Tensor) -> torch.Tensor:
-    """Mean squared acceleration (cm / frame^2)^2 of (T, K, 3) points in metres; 0 for T < 3."""
-    if points.shape[0] < 3:
-        return points.new_zeros(())
-    acc = (points[2:] - 2 * points[1:-1] + points[:-2]) * 100.0
-    return (acc ** 2).sum(-1).mean()
-
-
-class _Pack:
-    """Several clips' frames along one batch axis, and the per-clip reductions of the objective's terms.
-
-    Per-clip sums are segment sums (``index_add``) over the rows a clip owns, never products with 0/1 weight
-    matrices: a value of one clip (an infinity or NaN at a wild line-search trial of its own) then reaches no
-    other clip's loss or gradient, as ``0 x inf`` in a weight product would. ``triplets``: the acceleration
-    triplets (t - 1, t, t + 1) whose three frames lie in one clip, by their first frame, with their clip and the
-    weight of the mean over that clip's triplets.
-    """
-
-    def __init__(self, lengths: list[int], device: torch.device):
-        self.lengths = lengths
-        self.clips = len(lengths)
-        self.clip = torch.repeat_interleave(torch.arange(len(lengths), device=device),
-                                            torch.as_tensor(lengths, device=device))  # (B,) clip of each frame
-        starts = np.cumsum([0] + lengths[:-1])
-        self.slices = [slice(int(a), int(a) + n) for a, n in zip(starts, lengths)]
-        self.frame_weight = (1.0 / torch.as_tensor(lengths, dtype=torch.float32, device=device).clamp(min=1))[
-            self.clip]  # (B,) 1 / frames of the frame's clip
-        first, owner, weight = [], [], []
-        for c, sl in enumerate(self.slices):
-            count = sl.stop - sl.start - 2
-            if count >= 1:
-                first.extend(range(sl.start, sl.stop - 2))
-                owner.extend([c] * count)
-                weight.extend([1.0 / count] * count)
-        self.triplet_first = torch.as_tensor(first, dtype=torch.long, device=device)
-        self.triplet_clip = torch.as_tensor(owner, dtype=torch.long, device=device)
-        self.triplet_weight = torch.as_tensor(weight, dtype=torch.float32, device=device)
-
-    def clip_sum(self, values: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
-        """(C, ...) sums of ``values`` (N, ...) by clip (``index``: the clip of each row, default every frame's)."""
-        index = self.clip if index is None else index
-        return values.new_zeros((self.clips, *values.shape[1:])).index_add(0, index, values)
-
-
-class _Terms:
-    """The objective's three terms per clip, (C,) each; for one clip exactly :func:`reprojection_loss`,
-    :func:`acceleration_loss` and the mean over streams of the mean squared distance to the initialisation."""
-
-    def __init__(self, pack: _Pack, conf: torch.Tensor, parts: list[slice], valid: torch.Tensor):
-        self.pack = pack
-        self.conf = conf
-        membership = torch.zeros(conf.shape[1], len(parts), dtype=conf.dtype, device=conf.device)  # (K, parts)
-        for i, p in enumerate(parts):
-            membership[p, i] = 1.0
-        self.membership = membership
-        norm = pack.clip_sum(conf @ membership)  # (C, parts) summed confidence
-        has_part = norm > 0
-        # each part's weighted squared error / its summed confidence, averaged over the parts the clip has
-        self.part_weights = has_part / torch.where(has_part, norm, torch.ones_like(norm)) \
-            / has_part.sum(1, keepdim=True).clamp(min=1)
-        # mean over the valid points of a squared acceleration in cm (points are in metres)
-        valid = valid.to(conf.dtype)
-        self.point_weights = valid * 100.0 ** 2 / valid.sum().clamp(min=1)  # (K,)
-        self._stream_weights: dict[tuple, torch.Tensor] = {}
-
-    def reprojection(self, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        sq = ((uv - target) ** 2).sum(-1) * self.conf  # (B, K)
-        return (self.pack.clip_sum(sq @ self.membership) * self.part_weights).sum(1)
-
-    def acceleration(self, points: torch.Tensor) -> torch.Tensor:
-        first = self.pack.triplet_first
-        acc = points[first + 2] - 2 * points[first + 1] + points[first]  # (triplets, K, 3), inside clips only
-        return self.pack.clip_sum(((acc ** 2).sum(-1) @ self.point_weights) * self.pack.triplet_weight,
-                                  self.pack.triplet_clip)
-
-    def regulariser(self, params: dict[str, torch.Tensor], init: dict[str, torch.Tensor]) -> torch.Tensor:
-        dims = tuple(params[k].shape[1] for k in params)
-        weights = self._stream_weights.get(dims)
-        if weights is None:  # the mean over streams of each stream's mean over its dimensions
-            weights = torch.cat([torch.full((d,), 1.0 / (d * len(dims))) for d in dims]).to(self.conf)
-            self._stream_weights[dims] = weights
-        diff = torch.cat([params[k] - init[k] for k in params], 1)  # (B, D)
-        return self.pack.clip_sum(((diff ** 2) @ weights) * self.pack.frame_weight)
-
-
-def _minimise(loss_fn, variables: list[torch.Tensor], cfg: FittingConfig, stage: str, lr: float,
-              curve: list[float], project_bounds=None) -> None:
-    """Minimise ``loss_fn()`` over ``variables`` in place, appending every objective evaluation to ``curve``.
-
-    The budget is ``iterations`` objective (and gradient) evaluations, ``camera_iterations`` for the camera
-    stage. ``adam``: that many Adam steps at ``lr`` with a cosine decay to 5 %, the bounds projected after each
-    step. ``lbfgs``: L-BFGS with a strong-Wolfe line search (``lr`` unused), in rounds of ``lbfgs_round``
-    iterations, at most that many evaluations; it stops early once a round improved the loss by less than
-    ``tolerance`` (relative). Bounded variables enter ``loss_fn`` clamped and are projected onto their bounds
-    after every round.
-    """
-    iterations = cfg.camera_iterations if stage == "camera" else cfg.iterations
-    if cfg.solver == "adam":
-        opt = torch.optim.Adam(variables, lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, iterations), eta_min=lr * 0.05)
-        for _ in range(iterations):
-            opt.zero_grad()
-            loss = loss_fn()
-            loss.backward()
-            opt.step()
-            sched.step()
-            if project_bounds is not None:
-                project_bounds()
-            curve.append(float(loss.detach()))
-        return
-    if cfg.solver != "lbfgs":
-        raise ValueError(f"fitting.solver is {cfg.solver!r}; expected 'lbfgs' or 'adam'")
-
-    def evaluate(opt: torch.optim.Optimizer) -> torch.Tensor:
-        opt.zero_grad()
-        loss = loss_fn()
-        loss.backward()
-        return loss
-
-    curve.extend(lbfgs_rounds(variables, evaluate, iterations, cfg.lbfgs_round, cfg.lbfgs_history, cfg.tolerance,
-                              project_bounds))
-
-
 def fit_track(
     track: Track,
     body: BodyModel,
@@ -240,7 +111,7 @@ def fit_tracks(
     if device.type != "cpu":
         body = body.to(device)  # type: ignore[attr-defined]
     layout = body.layout
-    pack = _Pack([t.num_frames for t in tracks], device)
+    pack = ClipPack([t.num_frames for t in tracks], device)
     correspondence = correspondence or body.correspondence(tracks[0].landmark_set)
     kpset = body.keypoint_set(correspondence)
     valid = torch.as_tensor(correspondence.valid, device=device)
@@ -252,7 +123,7 @@ def fit_tracks(
         raise ValueError(f"{what} no visible landmark with a body-model correspondence in any frame")
     intrinsics = torch.stack([_intrinsics(t, cfg) for t in tracks]).to(device)  # (C, 4)
     parts = list(landmark_slices(tracks[0].landmark_set).values())
-    terms = _Terms(pack, conf, parts, valid)
+    terms = ClipTerms(pack, conf, parts, valid)
 
     inits = []
     for t in tracks:
@@ -303,37 +174,17 @@ def fit_tracks(
         points = body.forward_keypoints(params, current_identity(), kpset, **shape)  # (B, K, 3)
         return points, uv_of(points)
 
-    def solve(loss_per_clip, names: list[str], stage: str, lr: float, curve: list[float],
-              project_bounds=None) -> None:
-        """Minimise the clips' summed objective over ``opt[names]``; lbfgs_batched / lbfgs_lockstep: each clip
-        its own."""
-        if not cfg.per_clip_problems:
-            _minimise(lambda: loss_per_clip().sum(), [opt[k] for k in names], cfg, stage, lr, curve, project_bounds)
-            return
-        per_clip = [k for k in names if k in ("identity", "cam_rot", "cam_trans")]
-        per_row = [k for k in names if k not in per_clip]
-        budget = cfg.camera_iterations if stage == "camera" else cfg.iterations
-        if cfg.solver == "lbfgs_batched":
-            curves = minimise_batched(opt, per_row, per_clip, pack.slices, loss_per_clip, budget, cfg.lbfgs_round,
-                                      cfg.lbfgs_history, cfg.tolerance, bounds if project_bounds else None)
-        else:
-            curves = minimise_rows(opt, per_row, per_clip, pack.clip, loss_per_clip, budget, cfg.lbfgs_round,
-                                   cfg.tolerance, cfg.lbfgs_history, project_bounds)
-        if stage == "full":
-            clip_curves.extend(curves)
-
-    clip_curves: list[list[float]] = []  # lbfgs_lockstep: each clip's own curve of the full stage
     curve: list[float] = []
     # Stage 1: camera only, against the torso and head (arms and hands are far from the rest pose).
     torso_conf = torch.zeros_like(conf)
     torso_conf[:, parts[0]] = conf[:, parts[0]]
     torso_conf[:, parts[0].start + 13: parts[0].start + 23] = 0.0  # elbows, wrists and hand points of the pose part
     if float(torso_conf.sum()) > 0:
-        torso = _Terms(pack, torso_conf, [parts[0]], valid)
+        torso = ClipTerms(pack, torso_conf, [parts[0]], valid)
         with torch.no_grad():
             rest_points = body.forward_keypoints(current_params(), current_identity(), kpset, **shape)
-        solve(lambda: torso.reprojection(uv_of(rest_points), target), ["cam_rot", "cam_trans"], "camera",
-              cfg.lr * 2, [])
+        solve(opt, lambda: torso.reprojection(uv_of(rest_points), target), ["cam_rot", "cam_trans"], "camera",
+              cfg.lr * 2, [], cfg, pack)
 
     # Stage 2: everything, with the full objective (the sum of the clips' objectives).
     bounds = {k: layout[k].bounds for k in scalar_streams if layout[k].bounds is not None}
@@ -356,7 +207,8 @@ def fit_tracks(
 
     names = [*rot_streams, *scalar_streams, *(["identity"] if opt["identity"].requires_grad else []),
              "cam_rot", "cam_trans"]
-    solve(full_loss, names, "full", cfg.lr, curve, project_bounds=bounded)
+    # lbfgs_batched / lbfgs_lockstep: each clip's own curve of the full stage
+    clip_curves = solve(opt, full_loss, names, "full", cfg.lr, curve, cfg, pack, bounds, project_bounds=bounded)
 
     with torch.no_grad():
         params = current_params()

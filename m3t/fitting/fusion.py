@@ -5,17 +5,8 @@ fuses them and refines everything jointly against 2D keypoints (:func:`m3t.fitti
 For one clip: :func:`initialise_from_trackers` reads the outputs found beside its media
 (:func:`m3t.trackers.external.find_tracker_outputs`) and fuses them, :func:`refine` fits the clip's 2D
 track around the result, :func:`describe` summarises where each modality's initialisation came from.
-Fusion is per modality and per frame:
-
-1. every candidate :class:`TrackerStream` (values in the body's modality layout, a confidence per frame)
-   is tried in priority order (hands: WiLoR, then NLF's hands); the first one whose confidence reaches
-   ``min_confidence`` gives the frame;
-2. frames that no stream covers are filled: gaps of at most ``max_gap`` frames between two covered
-   frames are interpolated (rotations joint by joint along the geodesic, scalars linearly), longer gaps
-   and the clip ends hold the nearest covered value, and a modality no stream covers at all stays at the
-   rest pose; :attr:`FusedInit.source` flags every frame (stream index, or ``INTERPOLATED`` / ``HELD`` / ``REST``);
-3. the identity is the clip's median over its frames (SMPL-X betas from NLF, FLAME shape from Pixel3DMM);
-   fused clips are fitted alone, each with its own identity (not pooled per signer).
+Fusion is per modality and per frame (:mod:`m3t.fitting.stream_fusion`), from the streams the trackers'
+estimates convert to (:mod:`m3t.fitting.tracker_streams`).
 
 The fused parameters become ``Track.init`` (what ``L_reg`` pulls toward) and the identity the starting
 identity of the refinement.
@@ -36,10 +27,8 @@ Axis legend: T frames, D modality dim, n joints of a stream.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 
 import numpy as np
-import roma
 import torch
 
 from m3t.body.protocol import BodyModel, ModalityLayout
@@ -47,25 +36,18 @@ from m3t.body.smplfx import FACE_LABELS
 from m3t.body.smplfx_build import SMPLX_JOINTS
 from m3t.fitting.config import FittingConfig, FusionConfig
 from m3t.fitting.fit import FitResult, fit_track
-from m3t.trackers.external import (
-    TRACKERS,
-    BodyEstimates,
-    FaceEstimates,
-    HandEstimates,
-    TrackerOutputs,
-    read_nlf,
-    read_pixel3dmm,
-    read_wilor,
-    rotmat_to_6d,
+from m3t.fitting.stream_fusion import HELD, INTERPOLATED, REST, FusedInit
+from m3t.fitting.tracker_streams import (
+    FLAME_SHAPE,
+    SMPLX_BETAS,
+    TRACKER_TARGETS,
+    fuse_trackers,
 )
+from m3t.trackers.external import TRACKERS, TrackerOutputs
+from m3t.trackers.nlf_reader import read_nlf
+from m3t.trackers.pixel3dmm_reader import read_pixel3dmm
 from m3t.trackers.track import Track
-
-INTERPOLATED, HELD, REST = -1, -2, -3
-SMPLX_BETAS = tuple(f"smplx_beta_{i}" for i in range(10))
-FLAME_SHAPE = "flame_shape_{:03d}"
-# What each tracker's converter writes: layout modalities, plus the identity.
-TRACKER_TARGETS = {"nlf": ("body", "left_hand", "right_hand", "identity"), "wilor": ("left_hand", "right_hand"),
-                   "pixel3dmm": ("face", "identity")}
+from m3t.trackers.wilor_reader import read_wilor
 
 
 class FusionUnsupported(ValueError):
@@ -79,170 +61,6 @@ class FusionUnsupported(ValueError):
                          + " (the tracker converters need SMPL-FX's SMPL-X / FLAME layout)")
 
 
-@dataclass(frozen=True)
-class TrackerStream:
-    """One tracker's estimate of one modality: values (T, D) in the layout, confidence (T,), 0 = missing."""
-
-    source: str
-    values: np.ndarray
-    confidence: np.ndarray
-
-
-@dataclass(frozen=True)
-class FusedInit:
-    init: dict[str, np.ndarray]  # modality -> (T, D) float32, usable as Track.init
-    source: dict[str, np.ndarray]  # modality -> (T,) int: stream index, INTERPOLATED, HELD or REST
-    stream_names: dict[str, tuple[str, ...]]  # modality -> "<tracker>[:<part>]" per stream, priority order
-    identity: np.ndarray | None  # (P,) or None when no tracker gave one
-    identity_sources: tuple[str, ...] = ()  # trackers that gave the identity
-    outside: dict[str, int] = field(default_factory=dict)  # tracker -> estimates at frames outside the clip
-
-
-def _interpolate(a: np.ndarray, b: np.ndarray, w: float, rotation: bool) -> np.ndarray:
-    if not rotation:
-        return (1 - w) * a + w * b
-    ra = roma.special_gramschmidt(torch.as_tensor(a, dtype=torch.float64).reshape(-1, 2, 3).transpose(-1, -2))
-    rb = roma.special_gramschmidt(torch.as_tensor(b, dtype=torch.float64).reshape(-1, 2, 3).transpose(-1, -2))
-    rw = roma.rotmat_slerp(ra, rb, torch.tensor([w], dtype=torch.float64))[0]  # (n, 3, 3)
-    return rot_to_flat6d(rw.numpy())
-
-
-def rot_to_flat6d(rot: np.ndarray) -> np.ndarray:
-    """(..., n, 3, 3) -> (..., n * 6) in the project's 6D layout."""
-    six = rotmat_to_6d(rot)
-    return six.reshape(*six.shape[:-2], -1)
-
-
-def fuse_modality(streams: list[TrackerStream], rest: np.ndarray, rotation: bool, cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(T, D) values and (T,) source flags of one modality (see the module docstring)."""
-    T = streams[0].values.shape[0] if streams else 0
-    out = np.tile(rest, (T, 1)).astype(np.float64)
-    source = np.full(T, REST, dtype=np.int64)
-    for k in reversed(range(len(streams))):  # the highest priority written last
-        s = streams[k]
-        ok = (s.confidence >= cfg.min_confidence) & np.isfinite(s.values).all(1)
-        out[ok] = s.values[ok]
-        source[ok] = k
-    covered = np.flatnonzero(source >= 0)
-    if covered.size == 0:
-        return out.astype(np.float32), source
-    for t in np.flatnonzero(source < 0):
-        after = covered[covered > t]
-        before = covered[covered < t]
-        if before.size and after.size and after[0] - before[-1] - 1 <= cfg.max_gap:
-            a, b = before[-1], after[0]
-            out[t] = _interpolate(out[a], out[b], (t - a) / (b - a), rotation)
-            source[t] = INTERPOLATED
-        else:
-            near = before[-1] if (before.size and (not after.size or t - before[-1] <= after[0] - t)) else after[0]
-            out[t] = out[near]
-            source[t] = HELD
-    return out.astype(np.float32), source
-
-
-def fuse(layout: ModalityLayout, streams: dict[str, list[TrackerStream]], rest: dict[str, np.ndarray], num_frames: int,
-         cfg: FusionConfig = FusionConfig(), identity: np.ndarray | None = None) -> FusedInit:
-    """Fuse candidate streams per modality; ``rest``: modality -> (D,) rest parameters."""
-    init, source, names = {}, {}, {}
-    for m in layout.modalities:
-        cands = streams.get(m.name, [])
-        for s in cands:
-            if s.values.shape != (num_frames, m.dim) or s.confidence.shape != (num_frames,):
-                raise ValueError(f"stream {s.source!r} for {m.name!r} has shape {s.values.shape} / "
-                                 f"{s.confidence.shape}; expected ({num_frames}, {m.dim}) / ({num_frames},)")
-        if cands:
-            init[m.name], source[m.name] = fuse_modality(cands, rest[m.name], m.kind == "rotation6d", cfg)
-        else:
-            init[m.name] = np.tile(rest[m.name], (num_frames, 1)).astype(np.float32)
-            source[m.name] = np.full(num_frames, REST, dtype=np.int64)
-        names[m.name] = tuple(s.source for s in cands)
-    return FusedInit(init, source, names, identity)
-
-
-# ------------------------------------------------------------------------ tracker estimates -> streams
-def _scatter(frames: np.ndarray, values: np.ndarray, conf: np.ndarray, T: int, source: str) -> TrackerStream:
-    full = np.full((T, values.shape[1]), np.nan)
-    c = np.zeros(T)
-    inside = (frames >= 0) & (frames < T)
-    full[frames[inside]] = values[inside]
-    c[frames[inside]] = conf[inside]
-    return TrackerStream(source, full, c)
-
-
-def _joint_columns(layout: ModalityLayout, name: str) -> list[int]:
-    try:
-        return [SMPLX_JOINTS.index(label) for label in layout[name].labels]
-    except ValueError as exc:
-        raise ValueError(f"modality {name!r} is not labelled with SMPL-X joints ({exc}); the tracker converters "
-                         "need the smplfx body model") from exc
-
-
-def nlf_streams(body: BodyEstimates, layout: ModalityLayout, T: int) -> dict[str, TrackerStream]:
-    """NLF body (and, as a fallback, hand) streams. Global orient and spine rotations are left to the
-    camera (SMPL-FX's root and torso are rigid); the face comes from Pixel3DMM only."""
-    out = {}
-    for name in ("body", "left_hand", "right_hand"):
-        cols = _joint_columns(layout, name)
-        out[name] = _scatter(body.frame, rot_to_flat6d(body.rotations[:, cols]), body.confidence, T, f"nlf:{name}")
-    return out
-
-
-def wilor_streams(hands: dict[str, HandEstimates], layout: ModalityLayout, T: int) -> dict[str, TrackerStream]:
-    return {f"{side}_hand": _scatter(h.frame, rot_to_flat6d(h.hand_pose), h.confidence, T, f"wilor:{side}")
-            for side, h in hands.items()}
-
-
-def pixel3dmm_stream(face: FaceEstimates, layout: ModalityLayout, T: int) -> TrackerStream:
-    values = np.concatenate([face.expression, face.eyelids, rot_to_flat6d(face.jaw[:, None])], axis=1)
-    if values.shape[1] != layout["face"].dim:
-        raise ValueError(f"Pixel3DMM gives {values.shape[1]} face values; the layout's face has {layout['face'].dim}")
-    return _scatter(face.frame, values, np.ones(len(face.frame)), T, "pixel3dmm")
-
-
-def tracker_identity(layout: ModalityLayout, body: BodyEstimates | None, face: FaceEstimates | None) -> np.ndarray | None:
-    """SMPL-X betas (median over NLF frames) and FLAME shape (Pixel3DMM) placed by identity label
-    (``smplx_beta_<i>``, ``flame_shape_<iii>``); labels no tracker gives stay 0."""
-    if body is None and face is None:
-        return None
-    column = {label: i for i, label in enumerate(layout.identity_labels)}
-    given = list(zip(SMPLX_BETAS, np.median(body.betas, axis=0))) if body is not None and len(body.betas) else []
-    given += [(FLAME_SHAPE.format(i), v) for i, v in enumerate(face.shape)] if face is not None else []
-    ident = np.zeros(layout.identity_dim)
-    for label, value in given:
-        if label in column:
-            ident[column[label]] = value
-    return ident.astype(np.float32)
-
-
-def _outside(frames: np.ndarray, T: int) -> int:
-    return int(((frames < 0) | (frames >= T)).sum())
-
-
-def fuse_trackers(body_model: BodyModel, num_frames: int, nlf: BodyEstimates | None = None,
-                  wilor: dict[str, HandEstimates] | None = None, pixel3dmm: FaceEstimates | None = None,
-                  cfg: FusionConfig = FusionConfig()) -> FusedInit:
-    """The paper's combination: body from NLF, hands from WiLoR (NLF as fallback), face from Pixel3DMM."""
-    layout = body_model.layout
-    streams: dict[str, list[TrackerStream]] = {m.name: [] for m in layout.modalities}
-    outside = {}
-    if wilor is not None:
-        for name, s in wilor_streams(wilor, layout, num_frames).items():
-            streams[name].append(s)
-        outside["wilor"] = sum(_outside(h.frame, num_frames) for h in wilor.values())
-    if pixel3dmm is not None:
-        streams["face"].append(pixel3dmm_stream(pixel3dmm, layout, num_frames))
-        outside["pixel3dmm"] = _outside(pixel3dmm.frame, num_frames)
-    if nlf is not None:
-        for name, s in nlf_streams(nlf, layout, num_frames).items():
-            streams[name].append(s)
-        outside["nlf"] = _outside(nlf.frame, num_frames)
-    rest = {k: v[0].detach().cpu().numpy() for k, v in body_model.rest_params(1).items()}
-    fused = fuse(layout, streams, rest, num_frames, cfg, tracker_identity(layout, nlf, pixel3dmm))
-    sources = tuple(n for n, e in (("nlf", nlf), ("pixel3dmm", pixel3dmm)) if e is not None)
-    return dataclasses.replace(fused, identity_sources=sources, outside={k: outside[k] for k in TRACKERS if k in outside})
-
-
-# ------------------------------------------------------------------------------------------ one clip
 def _target_problem(layout: ModalityLayout, tracker: str, target: str) -> str | None:
     """Why ``tracker``'s converter cannot write ``target`` of this layout (None: it can)."""
     if target == "identity":
@@ -288,7 +106,7 @@ def initialise_from_trackers(body: BodyModel, outputs: TrackerOutputs, num_frame
     """Read a clip's external tracker outputs and fuse them into an initialisation of ``num_frames`` frames.
 
     All present outputs are used or none: :class:`FusionUnsupported` when the body model cannot take one of
-    their streams (nothing is read then); :class:`m3t.trackers.external.TrackerFileError` for an unreadable
+    their streams (nothing is read then); :class:`m3t.trackers.tracker_files.TrackerFileError` for an unreadable
     file. With ``cfg.use_external`` off, or no output present, every modality stays at the rest pose.
     """
     present = outputs.names() if cfg.use_external else ()

@@ -1,7 +1,7 @@
 """Already-fitted corpora -> shard rows without tracking or fitting: fit-corpus's path for the media kinds the
 trackers refuse (:data:`m3t.trackers.dispatch.REFUSED`).
 
-The engine (:func:`m3t.fitting.corpus.process_clip`) checks a clip (:func:`check_importable`), reads its source
+The engine (:func:`m3t.fitting.per_clip.process_clip`) checks a clip (:func:`check_importable`), reads its source
 arrays (:func:`read_source`), addresses the part file by those arrays' bytes and :class:`ImportSettings`, and on a
 cache miss builds the row with :func:`import_clip`; part files, cache, quarantine and the quality report are the
 engine's, as for fitted clips. What each kind becomes:

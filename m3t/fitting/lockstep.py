@@ -12,7 +12,7 @@ direction by the two-loop recursion; one that does not backtracks (a safeguarded
 0.1 t and 0.5 t) and tries again at the next evaluation. Histories are aligned by evaluation: a slot holds every
 problem's pair, and a problem that did not step in that evaluation (or whose pair has no positive curvature)
 holds ``rho = 0`` there, which makes the slot a no-op in its recursion. Every ``round`` evaluations the bounds
-are projected (the objective sees bounded variables clamped, as in :func:`m3t.fitting.fit._minimise`), every
+are projected (the objective sees bounded variables clamped, as in :func:`m3t.fitting.solvers.minimise`), every
 problem is re-evaluated at its projected point, and a problem whose best loss improved by less than
 ``tolerance`` (relative) over the round stops. A direction that is not a descent direction restarts as the
 steepest descent; the first step of a problem is ``min(1, 1 / |g|_1)``, as in ``torch.optim.LBFGS``.

@@ -18,7 +18,7 @@ import numpy as np
 
 from m3t.atomic import write_json, write_jsonl, write_text
 from m3t.body.protocol import ModalityLayout
-from m3t.corpora.base import SPLITS
+from m3t.corpora.splits import SPLITS
 from m3t.fitting.quality import plot_quality, quality_report, write_quality
 from m3t.shards.io import read_shard, write_shard
 from m3t.shards.schema import FittedClip

@@ -32,6 +32,13 @@ the torch path's arithmetic to ~1e-15.
 Compiled functions are cached on disk (``cache=True``: compiled once per machine); where no cache directory is
 writable (a read-only install and home, no ``NUMBA_CACHE_DIR``) they compile once per process instead.
 
+Why one file above the project's ~350 lines: numba's disk cache checks only the source file of the function it
+compiled, and a fused job (``_point_job``) carries its callees (cost rows, QCP, DP sweep, backtrack) compiled
+into it. With the callees in another file, an edit there would leave the cached job running the old code
+(numba's documented limit: "cache invalidation fails to recognize changes in functions defined in a different
+file"); in one file any edit recompiles them all. The constants imported from :mod:`m3t.body.similarity` are
+frozen into the cache the same way: clear the cache (``__pycache__/kernels*.nb*``) after changing them.
+
 Axis legend: T1 prediction frames, T2 ground-truth frames, K points of a region, L path length, B jobs.
 """
 from __future__ import annotations

@@ -15,10 +15,10 @@ from typing import Any
 import torch
 
 from m3t.body.skeleton import SkeletonGraph, adjacency
+from m3t.checkpoints import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.dataclass_io import build_dataclass
 from m3t.sgsa.config import SGSAConfig
 from m3t.sgsa.model import SGSADims, SGSAProduction
-from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.vocabulary import Vocabulary
 
 FORMAT = "m3t-sgsa-v2"  # v2: both decoders pre-norm with a frame embedding and a final LayerNorm

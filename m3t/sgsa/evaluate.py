@@ -26,7 +26,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from m3t.body.skeleton import SkeletonGraph, denormalise, regions
+from m3t.body.skeleton import SkeletonGraph
+from m3t.body.skeleton_points import denormalise, regions
 from m3t.metrics.scorer import MotionScores, PointPair, score_point_pairs
 from m3t.sgsa.data import Sample, collate, text_batch
 from m3t.sgsa.model import SGSAProduction

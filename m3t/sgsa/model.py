@@ -24,6 +24,9 @@ target's counter (last) column is (t + 1) / U for frame t (0-based), so the last
 Generation (counter decoding, PT) feeds each prediction back and stops a sequence at its first frame t (1-based),
 t >= ``cfg.min_frames``, at which t reaches the length its counters so far point to (:class:`CounterStop`).
 
+The attention blocks, their key / value cache and PT's layer are in :mod:`m3t.sgsa.attention`, the SGSA layer in
+:mod:`m3t.sgsa.skeletal_attention`.
+
 Axis legend: B batch, K text tokens, E encoder width, G gloss classes, U frames, S skeleton width (coordinates + 1
 counter, the counter last), W width of the PT decoder, h heads.
 """
@@ -39,7 +42,9 @@ import torch
 from torch import nn
 
 from m3t.positional_encoding import sinusoid_table
+from m3t.sgsa.attention import StandardDecoderLayer, causal_band
 from m3t.sgsa.config import SGSAConfig
+from m3t.sgsa.skeletal_attention import SGSADecoderLayer
 
 
 @dataclass(frozen=True)
@@ -82,174 +87,6 @@ class CounterStop:
         weighted = self.weighted[rows]
         length = self.squares / weighted.clamp(min=1e-12)
         return (weighted > 0) & (t >= length - 0.5) & (t >= self.min_frames)
-
-
-def causal_band(queries: int, keys: int, band: float, device: torch.device | None = None) -> torch.Tensor:
-    """(queries, keys) bool, True where query frame i may attend to key frame j: i - band <= j <= i."""
-    i = torch.arange(queries, device=device)[:, None]
-    j = torch.arange(keys, device=device)[None, :]
-    allowed = j <= i
-    if math.isfinite(band):
-        allowed &= i - j <= band
-    return allowed
-
-
-class MultiHeadAttention(nn.Module):
-    """Scaled dot-product attention with free widths: queries (.., query_width) and keys / values (.., key_width) are
-    projected to ``heads`` x ``head_width``; the concatenated heads are projected to ``out_width``. Used for every
-    attention of this file (SGSA: head_width = S; cross-attention: S -> E; PT: the standard W / h heads)."""
-
-    def __init__(self, query_width: int, key_width: int, heads: int, head_width: int, out_width: int,
-                 dropout: float):
-        super().__init__()
-        self.heads, self.head_width = heads, head_width
-        self.q = nn.Linear(query_width, heads * head_width)
-        self.k = nn.Linear(key_width, heads * head_width)
-        self.v = nn.Linear(key_width, heads * head_width)
-        self.out = nn.Linear(heads * head_width, out_width)
-        self.dropout = nn.Dropout(dropout)
-
-    def split(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, T, h * d) -> (B, h, T, d)."""
-        return x.unflatten(-1, (self.heads, self.head_width)).transpose(1, 2)
-
-    def forward(self, query: torch.Tensor, key: torch.Tensor | None, value: torch.Tensor | None,
-                allowed: torch.Tensor | None = None, need_weights: bool = False,
-                cached: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """query (B, Tq, .), key / value (B, Tk, .), allowed (B or 1, Tq, Tk) bool (True = may attend) ->
-        (B, Tq, out_width) and the weights (B, h, Tq, Tk) when asked. Masked weights are exactly 0; a row with no
-        allowed key gets all-zero weights (its output is the output bias). ``cached``: keys and values already
-        projected and split (B, h, Tk, d), ``key`` / ``value`` unused."""
-        q = self.split(self.q(query))
-        k, v = cached if cached is not None else (self.split(self.k(key)), self.split(self.v(value)))
-        scores = q @ k.transpose(-1, -2) / math.sqrt(self.head_width)
-        if allowed is not None:
-            allowed = allowed[:, None]  # broadcast over heads
-            empty = ~allowed.any(-1, keepdim=True)
-            # fully masked rows are opened before the softmax (no NaN) and zeroed after it
-            weights = torch.softmax(scores.masked_fill(~(allowed | empty), -math.inf), dim=-1)
-            weights = weights.masked_fill(empty, 0.0)
-        else:
-            weights = torch.softmax(scores, dim=-1)
-        context = (self.dropout(weights) @ v).transpose(1, 2).flatten(2)
-        return self.out(context), (weights if need_weights else None)
-
-
-    def step(self, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, cache: dict[str, torch.Tensor],
-             window: float = math.inf) -> torch.Tensor:
-        """Incremental self-attention of generation: one new frame (B, 1, .) appends its key / value to ``cache``
-        and attends to the cached frames of the last ``window`` steps and itself (the causal band of
-        :func:`causal_band`); the cache keeps no more than it can use. -> (B, 1, out_width)."""
-        k, v = self.split(self.k(key)), self.split(self.v(value))
-        keys = k if "k" not in cache else torch.cat([cache["k"], k], dim=2)
-        values = v if "v" not in cache else torch.cat([cache["v"], v], dim=2)
-        if math.isfinite(window):
-            keys, values = keys[:, :, -(int(window) + 1):], values[:, :, -(int(window) + 1):]
-        cache["k"], cache["v"] = keys, values
-        q = self.split(self.q(query))
-        weights = torch.softmax(q @ keys.transpose(-1, -2) / math.sqrt(self.head_width), dim=-1)
-        return self.out((weights @ values).transpose(1, 2).flatten(2))
-
-    def cross_step(self, query: torch.Tensor, memory: torch.Tensor, allowed: torch.Tensor,
-                   cache: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Cross-attention of one new frame over the memory, whose keys / values are projected once per
-        generation and kept in ``cache``. allowed (B, 1, K) -> (B, 1, out_width)."""
-        if "mk" not in cache:
-            cache["mk"], cache["mv"] = self.split(self.k(memory)), self.split(self.v(memory))
-        return self(query, None, None, allowed, cached=(cache["mk"], cache["mv"]))[0]
-
-
-class SkeletalGraphSelfAttention(nn.Module):
-    """SGSA Eq. 8 with h heads of full width S: softmax(x W_Q (x W_K)^T / sqrt(S)) x A* W_V per head, concatenated
-    h x S -> S. The values mix coordinate j of each frame only from the coordinates k with A*[k, j] != 0 (x A* is a
-    row vector times A*). Query frame i attends to key frames i - N .. i (N = ``band``, math.inf = plain causal)."""
-
-    def __init__(self, width: int, heads: int, adjacency: torch.Tensor, band: float, dropout: float):
-        super().__init__()
-        adjacency = torch.as_tensor(adjacency, dtype=torch.float32)
-        if adjacency.shape != (width, width):
-            raise ValueError(f"SGSA adjacency: expected ({width}, {width}), got {tuple(adjacency.shape)}")
-        self.band = float(band)
-        self.register_buffer("adjacency", adjacency.clone())  # A*, fixed, kept in the state dict
-        self.attention = MultiHeadAttention(width, width, heads, width, width, dropout)
-
-    def values(self, x: torch.Tensor) -> torch.Tensor:
-        """V_A = x A* W_V per head: (B, U, S) -> (B, h, U, S)."""
-        return self.attention.split(self.attention.v(x @ self.adjacency))
-
-    def forward(self, x: torch.Tensor, pad_mask: torch.Tensor | None = None,
-                need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """x (B, U, S), pad_mask (B, U) True on real frames -> (B, U, S) and the weights (B, h, U, U) if asked."""
-        u = x.shape[1]
-        allowed = causal_band(u, u, self.band, x.device)[None]
-        if pad_mask is not None:
-            allowed = allowed & pad_mask[:, None, :]
-        return self.attention(x, x, x @ self.adjacency, allowed, need_weights)
-
-
-class SGSADecoderLayer(nn.Module):
-    """One pre-norm SGSA decoder layer of width S (Sec. 4.2): SGSA, encoder-decoder attention, feed-forward S, each
-    applied to the LayerNorm of the stream and added to it."""
-
-    def __init__(self, width: int, memory_width: int, heads: int, adjacency: torch.Tensor, band: float,
-                 dropout: float):
-        super().__init__()
-        self.self_attn = SkeletalGraphSelfAttention(width, heads, adjacency, band, dropout)
-        self.cross_attn = MultiHeadAttention(width, memory_width, heads, memory_width // heads, width, dropout)
-        self.ffn = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Dropout(dropout), nn.Linear(width, width))
-        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(width), nn.LayerNorm(width), nn.LayerNorm(width)
-        self.dropout = nn.Dropout(dropout)
-
-    def forward(self, x: torch.Tensor, memory: torch.Tensor, frame_mask: torch.Tensor | None,
-                memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """x (B, U, S), memory (B, K, E), memory_allowed (B, 1, K) -> (B, U, S), self-attention weights if asked."""
-        a, weights = self.self_attn(self.norm1(x), frame_mask, need_weights)
-        x = x + self.dropout(a)
-        h = self.norm2(x)
-        x = x + self.dropout(self.cross_attn(h, memory, memory, memory_allowed)[0])
-        return x + self.dropout(self.ffn(self.norm3(x))), weights
-
-
-    def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
-             cache: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The layer for one new frame x (B, 1, S) of generation, with the earlier frames' keys / values in
-        ``cache``: the same numbers as :meth:`forward` on the whole prefix, at the cost of one frame."""
-        sa = self.self_attn
-        h = self.norm1(x)
-        x = x + sa.attention.step(h, h, h @ sa.adjacency, cache, sa.band)
-        x = x + self.cross_attn.cross_step(self.norm2(x), memory, memory_allowed, cache)
-        return x + self.ffn(self.norm3(x))
-
-
-class StandardDecoderLayer(nn.Module):
-    """A standard pre-norm transformer decoder layer (PT's JoeyNMT layer; the math of nn.TransformerDecoderLayer with
-    ReLU and norm_first=True): causal self-attention, cross-attention over the memory, feed-forward."""
-
-    def __init__(self, width: int, heads: int, ffn: int, dropout: float):
-        super().__init__()
-        self.self_attn = MultiHeadAttention(width, width, heads, width // heads, width, dropout)
-        self.cross_attn = MultiHeadAttention(width, width, heads, width // heads, width, dropout)
-        self.ffn = nn.Sequential(nn.Linear(width, ffn), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ffn, width))
-        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(width), nn.LayerNorm(width), nn.LayerNorm(width)
-        self.dropout = nn.Dropout(dropout)
-
-    def forward(self, x: torch.Tensor, memory: torch.Tensor, self_allowed: torch.Tensor,
-                memory_allowed: torch.Tensor, need_weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """x (B, U, W), memory (B, K, W), self_allowed (B or 1, U, U), memory_allowed (B, 1, K) -> (B, U, W)."""
-        h = self.norm1(x)
-        a, weights = self.self_attn(h, h, h, self_allowed, need_weights)
-        x = x + self.dropout(a)
-        x = x + self.dropout(self.cross_attn(self.norm2(x), memory, memory, memory_allowed)[0])
-        return x + self.dropout(self.ffn(self.norm3(x))), weights
-
-
-    def step(self, x: torch.Tensor, memory: torch.Tensor, memory_allowed: torch.Tensor,
-             cache: dict[str, torch.Tensor]) -> torch.Tensor:
-        """One new frame x (B, 1, W) of generation with a key / value cache (see SGSADecoderLayer.step)."""
-        h = self.norm1(x)
-        x = x + self.self_attn.step(h, h, h, cache)
-        x = x + self.cross_attn.cross_step(self.norm2(x), memory, memory_allowed, cache)
-        return x + self.ffn(self.norm3(x))
 
 
 class SGSAProduction(nn.Module):
@@ -408,7 +245,6 @@ class SGSAProduction(nn.Module):
         for layer, cache in zip(self.layers, caches):
             x = layer.step(x, memory, allowed, cache)
         return self.output(self.final_norm(x))
-
 
     @torch.no_grad()
     def self_attention(self, text_ids: torch.Tensor, text_mask: torch.Tensor, frames_in: torch.Tensor,

@@ -28,7 +28,8 @@ from m3t.backtranslation.config import BackTranslationConfig
 from m3t.backtranslation.pipeline import PER_CLIP_COLUMNS, backtranslate
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
-from m3t.body.skeleton import SkeletonGraph, graph_for, regions
+from m3t.body.skeleton import SkeletonGraph, graph_for
+from m3t.body.skeleton_points import regions
 from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.metrics.scorer import PointPair, score_point_pairs
 from m3t.metrics.text import SLT_DEFINITION
@@ -41,7 +42,7 @@ from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
 from m3t.sgsa.data import Sample, collate, make_samples, vocabularies
 from m3t.sgsa.evaluate import MEAN_DTW, generate, produced_points, score_production
 from m3t.sgsa.train import run_key, train_sgsa
-from m3t.training import run_jobs, worker_split
+from m3t.training_jobs import run_jobs, worker_split
 from m3t.vocabulary import Vocabulary
 
 SMLM_SYSTEM = "smlm"  # the M3T SMLM's generated motion, posed into the same skeleton
@@ -155,7 +156,7 @@ def _judge(judge_dir: Path, rows: dict[str, tuple[str, np.ndarray]], texts: dict
 def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel, data: DataConfig,
                  judge: BackTranslationConfig | None = None, progress: bool = True) -> dict[str, float]:
     """Score every trained system (and the SMLM and the ground truth) on ``cfg.splits``; see the module docstring."""
-    from m3t.body.skeleton import normalise
+    from m3t.body.skeleton_points import normalise
     from m3t.render.posefile import export_skeleton_pose
     from m3t.render.skeleton_video import render_attention_map, render_skeleton_video
     from m3t.runtime import choose_device

@@ -28,6 +28,8 @@ import torch
 import torch.nn.functional as F
 
 from m3t.body.skeleton import SkeletonGraph
+from m3t.checkpoints import run_digest
+from m3t.optimizer import PlateauSchedule, adam, optimizer_step
 from m3t.sgsa.checkpoint import build_model, load_sgsa, save_sgsa
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch, Sample, collate
@@ -35,13 +37,9 @@ from m3t.sgsa.evaluate import SELECTION_METRIC, ProductionEvaluator
 from m3t.sgsa.model import SGSAProduction
 from m3t.training import (
     EpochTail,
-    PlateauSchedule,
     Selection,
     TrainRun,
-    adam,
     epoch_batches,
-    optimizer_step,
-    run_digest,
     run_epochs,
     scalar_settings,
     start_training,

@@ -2,7 +2,7 @@
 production models train on and what the skeleton back-translation judge reads.
 
 A clip's skeleton is its fitted motion posed with its own signer identity into the graph's joints (metres), then
-normalised (:func:`m3t.body.skeleton.normalise`: neck-centred per frame, divided by the clip's mean shoulder
+normalised (:func:`m3t.body.skeleton_points.normalise`: neck-centred per frame, divided by the clip's mean shoulder
 width). ``holistic`` graphs take the body model's MediaPipe-Holistic correspondence, the point layout of ``.pose``
 files; ``body`` graphs the metric keypoints of the DTW evaluation.
 
@@ -18,7 +18,8 @@ import torch
 from tqdm.auto import tqdm
 
 from m3t.body.protocol import BodyModel, as_tensors
-from m3t.body.skeleton import SkeletonGraph, body_points, holistic_points, normalise
+from m3t.body.skeleton import SkeletonGraph
+from m3t.body.skeleton_points import body_points, holistic_points, normalise
 from m3t.shards.schema import FittedClip
 
 SKELETON_STREAM = "skeleton"  # the one stream name of a skeleton clip's params

@@ -17,10 +17,10 @@ from typing import Any
 
 import torch
 
+from m3t.checkpoints import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.dataclass_io import build_dataclass
 from m3t.slr.config import SLRConfig
 from m3t.slr.model import ProbeDims, SLRProbe
-from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-slr-v1"
 

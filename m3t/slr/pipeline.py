@@ -49,7 +49,7 @@ from m3t.slr.train import predict_logits, run_key, train_slr
 from m3t.slr.trim import Trimmer
 from m3t.tokenizers.data import GROUPS
 from m3t.tokenizers.tokenize import load_tokenizers
-from m3t.training import run_jobs, worker_split
+from m3t.training_jobs import run_jobs, worker_split
 
 SPLITS = ("train", "dev", "test")
 

@@ -18,6 +18,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from m3t.checkpoints import run_digest
+from m3t.optimizer import adam, optimizer_step, warmup_cosine
 from m3t.runtime import autocast
 from m3t.slr.checkpoint import ProbeMeta, load_slr, save_slr
 from m3t.slr.config import SLRConfig, SLRTrainConfig
@@ -28,14 +30,10 @@ from m3t.training import (
     EpochTail,
     Selection,
     TrainRun,
-    adam,
     epoch_batches,
-    optimizer_step,
-    run_digest,
     run_epochs,
     scalar_settings,
     start_training,
-    warmup_cosine,
 )
 
 TRAIN_VERSION = "slr-v1"  # part of the resume key: bump when a change makes older training state invalid

@@ -13,11 +13,11 @@ from typing import Any
 
 import torch
 
+from m3t.checkpoints import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.dataclass_io import build_dataclass
 from m3t.smlm.config import SMLMConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import SignVocabulary
-from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-smlm-v1"
 

@@ -22,8 +22,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from m3t.checkpoints import run_digest
+from m3t.optimizer import adam, optimizer_step, warmup_cosine
 from m3t.runtime import DistributedContext, autocast
 from m3t.smlm.checkpoint import load_smlm, save_smlm
+from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.data import (
     IGNORE,
     Example,
@@ -32,20 +35,15 @@ from m3t.smlm.data import (
     production_batch,
     translation_batch,
 )
-from m3t.smlm.config import SMLMConfig, SMLMTrainConfig
 from m3t.smlm.model import SignMotionLM, SMLMDims
 from m3t.smlm.vocab import MOTION_STREAMS, SignVocabulary
 from m3t.training import (
     EpochTail,
     Selection,
     TrainRun,
-    adam,
-    optimizer_step,
-    run_digest,
     run_epochs,
     scalar_settings,
     start_training,
-    warmup_cosine,
 )
 
 TRAIN_VERSION = "smlm-v1"  # part of the resume key: bump when a change makes older training state invalid

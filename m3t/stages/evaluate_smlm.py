@@ -1,10 +1,10 @@
 """evaluate-smlm: generated motion + translations -> M3T Tab. 1 metrics (DTW-JPE / DTW-PA-JPE, face DTW-VPE,
 BLEU-4 / ROUGE-L) and the back-translation of the generated motion (Tab. 2, SL-T definition) in
-``<metrics>/smlm``, logged to MLflow (:func:`m3t.smlm.pipeline.evaluate_and_log`).
+``<metrics>/smlm``, logged to MLflow (:func:`m3t.smlm.evaluate_run.evaluate_and_log`).
 """
 from __future__ import annotations
 
-from m3t.smlm.pipeline import evaluate_and_log
+from m3t.smlm.evaluate_run import evaluate_and_log
 from m3t.stages import stage_main
 
 

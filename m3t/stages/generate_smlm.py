@@ -1,10 +1,10 @@
 """generate-smlm: the trained SMLM on ``smlm_generate.split`` -> generated motion tokens, translations, ``.pose``
 files, side-by-side body-surface videos (reference / generated) and skeleton videos (MP4) in ``data.generated``
-(:func:`m3t.smlm.pipeline.generate`).
+(:func:`m3t.smlm.generate_run.generate`).
 """
 from __future__ import annotations
 
-from m3t.smlm.pipeline import generate
+from m3t.smlm.generate_run import generate
 from m3t.stages import stage_main
 
 

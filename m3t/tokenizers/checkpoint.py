@@ -13,10 +13,10 @@ from typing import Any
 
 import torch
 
+from m3t.checkpoints import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 from m3t.dataclass_io import build_dataclass
 from m3t.tokenizers.config import VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer
-from m3t.training import CheckpointRecord, checkpoint_payload, read_checkpoint, save_checkpoint
 
 FORMAT = "m3t-tokenizer-v1"
 

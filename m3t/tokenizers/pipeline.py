@@ -22,7 +22,7 @@ import numpy as np
 from m3t.atomic import copy_file, write_json, write_jsonl
 from m3t.body.factory import BodyConfig
 from m3t.body.protocol import BodyModel
-from m3t.corpora.base import SPLITS
+from m3t.corpora.splits import SPLITS
 from m3t.experiment import ExperimentConfig, section_params
 from m3t.metrics.codebook import codebook_stats, plot_token_histogram, token_counts
 from m3t.runtime import DistributedContext
@@ -30,6 +30,7 @@ from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version, read_shard, read_split
 from m3t.shards.schema import FittedClip
 from m3t.tokenizers.checkpoint import load_tokenizer
+from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.data import (
     GROUPS,
     check_layout,
@@ -38,10 +39,9 @@ from m3t.tokenizers.data import (
     to_canonical,
 )
 from m3t.tokenizers.evaluate import ReconstructionProbe, encode_clip, reconstruct_clip
-from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.train import train_tokenizer
 from m3t.tokenizers.vae import MotionTokenizer
-from m3t.training import run_jobs, worker_split
+from m3t.training_jobs import run_jobs, worker_split
 
 
 def usable_sequences(group: str, clips: list[FittedClip], rejected: list[dict]) -> list[np.ndarray]:
@@ -148,7 +148,7 @@ def _group_in_worker(cfg: TokenizerTrainConfig, body_cfg: BodyConfig, stop_after
 
 
 def group_workers(cfg: TokenizerTrainConfig, dist_ctx: DistributedContext) -> tuple[int, int]:
-    """(worker processes, threads each) for the group runs (:func:`m3t.training.worker_split`)."""
+    """(worker processes, threads each) for the group runs (:func:`m3t.training_jobs.worker_split`)."""
     return worker_split(cfg.group_workers, len(cfg.groups), cfg.device, dist_ctx.world_size)
 
 

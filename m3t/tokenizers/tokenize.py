@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from m3t.atomic import write_json, write_jsonl
-from m3t.corpora.base import SPLITS
+from m3t.corpora.splits import SPLITS
 from m3t.digest import file_digest
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import read_split

@@ -21,22 +21,15 @@ import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 
+from m3t.checkpoints import run_digest
+from m3t.optimizer import adam, optimizer_step, warmup_cosine
 from m3t.runtime import DistributedContext, autocast
 from m3t.tokenizers.checkpoint import load_tokenizer, save_tokenizer
+from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.data import WindowSampler, normalisation
 from m3t.tokenizers.evaluate import ReconstructionProbe
-from m3t.tokenizers.config import TokenizerTrainConfig, VAEConfig
 from m3t.tokenizers.vae import MotionTokenizer
-from m3t.training import (
-    EpochTail,
-    Selection,
-    adam,
-    optimizer_step,
-    run_digest,
-    run_epochs,
-    start_training,
-    warmup_cosine,
-)
+from m3t.training import EpochTail, Selection, run_epochs, start_training
 
 TRAIN_VERSION = "tok-v2"  # part of the resume key: bump when a change makes older training state invalid
 

@@ -1,12 +1,16 @@
-"""Real media of a listed clip -> Track, chosen by the clip's ``media_kind``, and the content key of that media.
+"""A listed clip's media -> Track, chosen by the clip's ``media_kind``, and what that track depends on.
 
-fit-corpus calls :func:`media_key` to address a clip's track in its cache (the media's content and the tracker
-settings, never only its path) and :func:`track_real_clip` on a cache miss. Synthetic clips are tracked by the
-stage itself (the simulated tracker needs the body model and the ground truth).
+fit-corpus addresses a clip's track in its cache by :func:`track_key` (the media's content and the tracker
+settings, never only its path) and calls :func:`track_media` on a cache miss; every corpus goes this way. The
+inputs beyond the media (:class:`TrackingInputs`) are the 2D trackers' settings and, for the simulated tracker,
+the body model that projects ground-truth motion.
 
 =================  =====================================================================================
 media kind         tracking
 =================  =====================================================================================
+synthetic          ground-truth motion (the synthetic corpus' ``.npz``) -> the simulated tracker
+                   (:mod:`m3t.trackers.simulated`): a noisy 2D track with its own 3D initialisation;
+                   :func:`ground_truth` gives the motion back for scoring the fit
 pose               the ``.pose`` file -> track (:mod:`m3t.trackers.posefile`)
 spelled            the word's letter ``.pose`` files concatenated -> track (same conversion)
 video, frames      MediaPipe Holistic (:mod:`m3t.trackers.mediapipe_holistic`), world landmarks kept
@@ -19,11 +23,18 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 from m3t.corpora.clip import Clip
-from m3t.digest import file_digest
+from m3t.digest import file_digest, file_digest_bytes
+from m3t.trackers.config import MediaPipeConfig, SimulatedTrackerConfig
 from m3t.trackers.track import Track
 
+if TYPE_CHECKING:
+    from m3t.body.protocol import BodyModel
+    from m3t.camera import Camera
+
+SIMULATED_CORPUS = "synthetic"  # its clips are ground-truth motion, tracked by the simulated tracker
 POSEFILE_VERSION = "posefile-v1"  # bump when the .pose -> track conversion changes its output
 REFUSED = {  # media kinds fit-corpus imports instead of tracking (m3t.fitting.imports.IMPORTERS)
     "smplx_params": "already-fitted SMPL-X parameters are imported into SMPL-FX shards (body.model: smplfx), "
@@ -46,7 +57,7 @@ class ClipRefused(ValueError):
 def media_kind(clip: Clip) -> str:
     """The clip's media kind; clips of the synthetic corpus listed without one are ``synthetic``."""
     kind = clip.get("media_kind")
-    if kind is None and clip.corpus == "synthetic":
+    if kind is None and clip.corpus == SIMULATED_CORPUS:
         return "synthetic"
     if kind is None:
         raise ClipRefused("no media kind", f"clip {clip.id} carries no media_kind; list it through its corpus adapter")
@@ -120,3 +131,61 @@ def track_real_clip(clip: Clip, root: Path, mediapipe_cfg=None) -> Track:
                           f"{clip.media}; check that the media shows a signer (blank, tiny or cropped frames)")
     return track
 
+
+class TrackingInputs(Protocol):
+    """What tracking needs beyond a clip's media: the 2D trackers' settings and, for the simulated tracker, the
+    body model (built on first use) and its cache key (:class:`m3t.fitting.context.FitContext` is one)."""
+
+    @property
+    def mediapipe(self) -> MediaPipeConfig: ...
+
+    @property
+    def simulated(self) -> SimulatedTrackerConfig: ...
+
+    @property
+    def body(self) -> BodyModel: ...
+
+    @property
+    def body_key(self) -> object: ...
+
+
+def simulated_corpus(corpus: str) -> bool:
+    """Whether a corpus' clips are ground-truth motion tracked by the simulated tracker: its runs are configured
+    by params.yaml ``tracker`` (never by external tracker outputs) and pictured against the ground truth."""
+    return corpus == SIMULATED_CORPUS
+
+
+def track_key(clip: Clip, root: Path, inputs: TrackingInputs) -> tuple[object, ...]:
+    """What a clip's track depends on, as the parts of its cache key: ``(media_key,)`` for real media; for
+    ground-truth motion the motion file's bytes, the simulated tracker's settings and the body model's key, three
+    parts rather than one list, because that is the address of every cached synthetic track."""
+    if media_kind(clip) == "synthetic":
+        media = root / clip.media
+        if not media.exists():
+            raise FileNotFoundError(f"media file {media} of clip {clip.id} is missing")
+        return file_digest_bytes(media), inputs.simulated, inputs.body_key
+    return (media_key(clip, root, inputs.mediapipe),)
+
+
+def ground_truth(clip: Clip, root: Path) -> tuple[dict, object, Camera] | None:
+    """(params per modality (T, D), identity (P,), camera) a clip's media holds when it is ground-truth motion
+    (media kind ``synthetic``); None for every other media."""
+    if media_kind(clip) != "synthetic":
+        return None
+    from m3t.corpora.synthetic_storage import SyntheticCorpus
+
+    return SyntheticCorpus(root).ground_truth(clip)
+
+
+def track_media(clip: Clip, root: Path, inputs: TrackingInputs) -> Track:
+    """Track one listed clip by its media kind; raises (fit-corpus quarantines) when it cannot."""
+    if media_kind(clip) != "synthetic":
+        return track_real_clip(clip, root, inputs.mediapipe)
+    import torch
+
+    from m3t.body.protocol import as_tensors
+    from m3t.trackers.simulated import simulate_track
+
+    params, identity, camera = ground_truth(clip, root)
+    return simulate_track(clip.id, as_tensors(params), torch.as_tensor(identity), camera, clip.fps, inputs.body,
+                          inputs.simulated)

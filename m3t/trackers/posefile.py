@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from m3t.body.landmarks import HAND_LANDMARKS, POSE_LANDMARKS
-from m3t.corpora.base import CorpusError
+from m3t.corpora.listing import CorpusError
 from m3t.corpora.posefile import PoseData, pose_data, read_pose
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 

@@ -241,7 +241,7 @@ def test_languages_trained_in_worker_processes_equal_one_process_on_their_thread
     (this process has two): checkpoints, metrics.json, languages.json, skipped.jsonl and the per-epoch records
     are those of one process that trains the languages one after another on one thread, up to float rounding
     (:mod:`float_order`)."""
-    from m3t.training import worker_split
+    from m3t.training_jobs import worker_split
 
     runs = {}
     for workers, threads in ((1, 1), (2, 2)):

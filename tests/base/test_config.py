@@ -103,13 +103,14 @@ def test_missing_file_and_unknown_preset(tmp_path):
 def test_dataclass_defaults_equal_the_default_preset():
     """A component built without params.yaml behaves like the default pipeline: every section's dataclass
     defaults equal params.yaml (paper sizes live in the paper preset, not in the defaults)."""
-    from m3t.config import SECTIONS, build_section
+    from m3t.config import SECTIONS, build_section, section_class
 
     params = load_params(PARAMS)
     differ = []
-    for name, cls in SECTIONS.items():
+    for name in SECTIONS:
         if name == "corpora":
             continue
+        cls = section_class(name)
         built, default = getattr(params, name), build_section(cls, {}, name)
         differ += [f"{name}.{f.name}: dataclass {getattr(default, f.name)!r}, params.yaml {getattr(built, f.name)!r}"
                    for f in dataclasses.fields(cls) if getattr(default, f.name) != getattr(built, f.name)]
@@ -124,3 +125,13 @@ def test_every_component_option_is_reachable_from_params():
     assert job.mediapipe.static_image_mode is True and job.fusion.max_gap == 3
     assert [str(p) for p in params.data.shards_dirs] == ["data/shards/synthetic", "data/shards/fingerspelling"]
     assert str(params.data.generated) == "data/generated/synthetic+fingerspelling"
+
+
+def test_every_params_field_has_its_section_class():
+    """SECTIONS names each Params field's class by path; a path that drifts from the field's type fails here."""
+    from m3t.config import SECTIONS, Params, section_class
+
+    assert sorted(SECTIONS) == sorted(f.name for f in dataclasses.fields(Params))
+    for f in dataclasses.fields(Params):
+        if f.name != "corpora":
+            assert section_class(f.name).__name__ == str(f.type).split(".")[-1], f.name

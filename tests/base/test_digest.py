@@ -29,9 +29,9 @@ def test_helpers_are_plain_sha256(tmp_path):
 
 
 def test_data_version_run_digest_and_fit_keys_keep_their_recipes(tmp_path):
-    from m3t.fitting.corpus import _digest
+    from m3t.checkpoints import run_digest
+    from m3t.fitting.cache import cache_key
     from m3t.shards.io import data_version
-    from m3t.training import run_digest
 
     paths = []
     for name, content in (("train.parquet", b"rows of train"), ("dev.parquet", b"rows of dev")):
@@ -52,7 +52,7 @@ def test_data_version_run_digest_and_fit_keys_keep_their_recipes(tmp_path):
     for part in ("fit-v2", b"\x01\x02", {"lr": 0.02, "path": Path("p")}, *cache_parts()):
         h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
         h.update(b"\0")
-    assert _digest("fit-v2", b"\x01\x02", {"lr": 0.02, "path": Path("p")}) == h.hexdigest()[:16]
+    assert cache_key(b"\x01\x02", {"lr": 0.02, "path": Path("p")}) == h.hexdigest()[:16]  # led by KEY_VERSION
 
 
 def test_tracker_outputs_digest_keeps_its_recipe(tmp_path):

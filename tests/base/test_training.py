@@ -9,15 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from m3t.training import (
-    EpochTail,
-    Selection,
-    adam,
-    optimizer_step,
-    read_checkpoint,
-    save_checkpoint,
-    warmup_cosine,
-)
+from m3t.checkpoints import read_checkpoint, save_checkpoint
+from m3t.optimizer import adam, optimizer_step, warmup_cosine
+from m3t.training import EpochTail, Selection
 
 
 def lrs(scheduler, steps: int) -> list[float]:
@@ -229,7 +223,7 @@ def _job_dies(job: int, on_epoch) -> int:
 
 
 def test_worker_split_uses_processes_only_for_several_jobs_on_the_cpu_without_ddp():
-    from m3t.training import worker_split
+    from m3t.training_jobs import worker_split
 
     torch.set_num_threads(4)  # conftest restores the count
     assert worker_split(2, 3, "cpu") == (2, 2) and worker_split(4, 2, "cpu") == (2, 2)
@@ -244,7 +238,7 @@ def test_run_jobs_in_workers_returns_in_job_order_with_the_records_of_one_proces
     results come back in job order and the records are replayed in job order."""
     import os
 
-    from m3t.training import run_jobs
+    from m3t.training_jobs import run_jobs
 
     here: list = []
     results_here = run_jobs(_job_square, [3, 1, 2], ["c", "a", "b"], on_epoch=lambda *r: here.append(r))
@@ -262,7 +256,7 @@ def test_run_jobs_in_workers_returns_in_job_order_with_the_records_of_one_proces
 
 @pytest.mark.slow
 def test_run_jobs_raises_a_jobs_error_as_raised_and_names_a_worker_that_died():
-    from m3t.training import run_jobs
+    from m3t.training_jobs import run_jobs
 
     with pytest.raises(KeyError, match="job 2 has no data"):
         run_jobs(_job_fails, [1, 2], ["one", "two"], processes=2, threads=1)
@@ -283,7 +277,7 @@ def _job_sleeps(job: str, on_epoch) -> None:
 
 
 STAGE_POOLS = {  # a stage whose worker writes its pid to the file {pid!r} and sleeps
-    "trainer jobs": "from m3t.training import run_jobs; "
+    "trainer jobs": "from m3t.training_jobs import run_jobs; "
                     "run_jobs(t._job_sleeps, [{pid!r}, {pid!r}], ['a', 'b'], processes=2, threads=1)",
     "fit-corpus pool": "from m3t.fitting.cluster import process_pool; "
                        "pool = process_pool(2); pool.submit(t._job_sleeps, {pid!r}, None).result()",

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from m3t.body.anny_body import DATA_DIR, load_correspondence
-from m3t.body.build_correspondence import N_FACE
 from m3t.body.landmarks import HAND_LANDMARKS as HAND_NAMES
 from m3t.body.landmarks import POSE_LANDMARKS as POSE_NAMES
+from tools.build_correspondence import N_FACE
 
 PATH = DATA_DIR / "anny_mediapipe_holistic.json"
 HEAD_BONES = ("head", "neck01", "neck02", "neck03")

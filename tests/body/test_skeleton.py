@@ -14,10 +14,12 @@ from m3t.body.skeleton import (
     SkeletonGraph,
     adjacency,
     body_graph,
-    body_points,
-    denormalise,
     graph_for,
     holistic_graph,
+)
+from m3t.body.skeleton_points import (
+    body_points,
+    denormalise,
     holistic_points,
     normalise,
     regions,
@@ -287,7 +289,7 @@ def _holistic_body(names, kind, index, name="smplfx", joints=("pelvis", "neck", 
 
 
 def test_graph_correspondence_maps_body_joints_to_pose_landmarks_and_the_neck_to_the_neck_joint():
-    from m3t.body.skeleton import graph_correspondence
+    from m3t.body.skeleton_points import graph_correspondence
 
     body = _holistic_body(
         ["pose:nose", "pose:left_ear", "pose:mouth:left", "pose:left", "left_hand:wrist", "face:61"],
@@ -312,7 +314,7 @@ def test_skeleton_graph_rejects_an_edge_from_a_joint_to_itself():
 
 
 def test_holistic_points_reject_an_array_whose_point_count_differs_from_the_names():
-    from m3t.body.skeleton import holistic_points
+    from m3t.body.skeleton_points import holistic_points
 
     graph = SkeletonGraph("g", ("body:nose",), ())
     names = ["pose:nose", "pose:left_eye"]

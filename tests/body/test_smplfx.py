@@ -217,7 +217,7 @@ def test_fit_corpus_runs_with_smplfx(fx_files, tmp_path):
     """fit-corpus end to end with ``body.model: smplfx`` (load_body_model) on a tiny SMPL-FX corpus."""
     from m3t.corpora.base import CorpusSource
     from m3t.corpora.clip import Clip
-    from m3t.corpora.synthetic import SyntheticClip, write_corpus
+    from m3t.corpora.synthetic_storage import SyntheticClip, write_corpus
     from m3t.fitting.config import FitCorpusConfig, FitJob
     from m3t.fitting.corpus import run_fit_corpus
 

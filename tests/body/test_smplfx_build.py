@@ -14,9 +14,8 @@ from m3t.body.smplfx_build import (
     SMPLX_JOINTS,
     SMPLFXFiles,
     build_smplfx,
-    neck_rings,
-    teeth_geometry,
 )
+from m3t.body.smplfx_geometry import neck_rings, teeth_geometry
 
 
 # ------------------------------------------------------------------------------------------------ SMPL-FX build

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from m3t.claims import CLAIMS, claims_markdown, claims_table, judge, stability, stability_line, write_claims
+from m3t.claims.definitions import CLAIMS
+from m3t.claims.report import claims_markdown, stability_line, write_claims
+from m3t.claims.verdicts import claims_table, judge, stability
 from m3t.experiment import RunRecord
 
 CLIPS = [f"asl-syn-{i:04d}" for i in range(12)]

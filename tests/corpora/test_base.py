@@ -1,4 +1,5 @@
-"""The shared reader machinery of the corpora (:mod:`m3t.corpora.base`): what a missing or unreadable pickle's error
+"""The shared reader machinery of the corpora (:mod:`m3t.corpora.base`, :mod:`~m3t.corpora.listing`,
+:mod:`~m3t.corpora.annotation_files`, :mod:`~m3t.corpora.splits`): what a missing or unreadable pickle's error
 names, every field of a quarantine record, media paths checked against the resolved root (links leaving it refused
 with the fix), how text files split into lines and what their errors name, the media kind a clip's extra starts
 with, Python-2 corpus pickles, model-file classes refused, split fractions and unknown corpus names. Written to pin
@@ -14,19 +15,17 @@ import corpus_fixtures as fx
 import numpy as np
 import pytest
 
-from m3t.corpora.base import (
-    CORPORA,
+from m3t.corpora.annotation_files import load_data_pickle, read_lines
+from m3t.corpora.base import CORPORA, adapter_class
+from m3t.corpora.listing import (
     Collector,
     CorpusError,
     Quarantined,
-    adapter_class,
-    check_fractions,
-    load_data_pickle,
     media_path_problem,
-    read_lines,
     with_kind,
 )
 from m3t.corpora.phoenix14t import Phoenix14TCorpus
+from m3t.corpora.splits import check_fractions
 
 
 # ----------------------------------------------------------------------------------------- safe pickles

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from m3t.corpora.base import Collector, CorpusError, Quarantined, hash_split
 from m3t.corpora.clip import Clip
 from m3t.corpora.fingerspelling import (
     FingerspellingConfig,
@@ -23,6 +22,7 @@ from m3t.corpora.fingerspelling import (
     resample,
     spelled_paths,
 )
+from m3t.corpora.listing import Collector, CorpusError, Quarantined
 from m3t.corpora.posefile import (
     PoseData,
     PoseFileConfig,
@@ -31,6 +31,7 @@ from m3t.corpora.posefile import (
     read_pose,
     read_pose_info,
 )
+from m3t.corpora.splits import hash_split
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
-"""The readers of already-fitted corpora (:mod:`m3t.corpora.fitted_pickles`): SMPL-X export folders, SOKE's annotations
-and frames (both namings, the keys a renamed frame keeps), neccam/slt's records; what their errors name and what
-they quarantine. Written to pin behaviours that mutation testing found unchecked.
+"""The readers of already-fitted corpora (:mod:`m3t.corpora.soke_smplx`, :mod:`m3t.corpora.slt_pickle`): SMPL-X
+export folders, SOKE's annotations and frames (both namings, the keys a renamed frame keeps), neccam/slt's records;
+what their errors name and what they quarantine. Written to pin behaviours that mutation testing found unchecked.
 """
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import corpus_fixtures as fx
 import numpy as np
 import pytest
 
-from m3t.corpora.base import Collector, CorpusError, Quarantined
 from m3t.corpora.clip import Clip
-from m3t.corpora.fitted_pickles import (
-    SltPickleCorpus,
+from m3t.corpora.listing import Collector, CorpusError, Quarantined
+from m3t.corpora.slt_pickle import SltPickleCorpus
+from m3t.corpora.soke_smplx import (
     SmplxSequenceError,
     SokeSmplxConfig,
     SokeSmplxCorpus,

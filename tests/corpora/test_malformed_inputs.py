@@ -9,7 +9,6 @@ import collections
 
 import pytest
 import torch
-
 from malformed_cases import CASES, CLEAR, QUARANTINED, READ, classify
 
 

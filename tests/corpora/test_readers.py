@@ -14,31 +14,24 @@ import corpus_fixtures as fx
 import numpy as np
 import pytest
 
-from m3t.corpora.base import (
-    CORPORA,
+from m3t.corpora.base import CORPORA, open_corpus
+from m3t.corpora.csl_daily import INFO_KEYS, CslDailyConfig, CslDailyCorpus, _record
+from m3t.corpora.fingerspelling import FingerspellingCorpus, lexicon_root, spell
+from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
+from m3t.corpora.listing import (
     MEDIA_KINDS,
-    SPLITS,
     Collector,
     CorpusError,
     Listing,
     Quarantined,
-    hash_split,
-    hash_unit,
     media_path_problem,
-    open_corpus,
 )
-from m3t.corpora.csl_daily import INFO_KEYS, CslDailyConfig, CslDailyCorpus, _record
-from m3t.corpora.fingerspelling import FingerspellingCorpus, lexicon_root, spell
-from m3t.corpora.fitted_pickles import (
-    SmplxSequenceError,
-    frame_number,
-    load_smplx_sequence,
-)
-from m3t.corpora.how2sign import How2SignConfig, How2SignCorpus
 from m3t.corpora.mead import MeadCorpus, read_flame_params
 from m3t.corpora.nmfs_csl import NmfsCslConfig, NmfsCslCorpus
 from m3t.corpora.phoenix14t import Phoenix14TCorpus
 from m3t.corpora.posefile import read_pose, read_pose_info
+from m3t.corpora.soke_smplx import SmplxSequenceError, frame_number, load_smplx_sequence
+from m3t.corpora.splits import SPLITS, hash_split, hash_unit
 
 
 def counts(listing: Listing) -> dict[str, int]:

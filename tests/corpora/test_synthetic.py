@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from m3t.corpora.synthetic import SyntheticCorpus, SyntheticCorpusConfig, generate_corpus, write_corpus
+from m3t.corpora.config import SyntheticCorpusConfig
+from m3t.corpora.synthetic import generate_corpus
 from m3t.corpora.synthetic_lexicon import CONCEPTS, build_lexicon, make_sentence
+from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
 
 CFG = SyntheticCorpusConfig(num_signs=10, confusing_pairs=2, num_signers=2, sentences_per_language=3,
                             frames_per_sign=8, transition_frames=3, hold_frames=2)

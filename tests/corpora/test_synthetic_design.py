@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from m3t.corpora.config import SyntheticCorpusConfig
-from m3t.corpora.synthetic import generate_corpus, held_out_splits
+from m3t.corpora.synthetic import generate_corpus
+from m3t.corpora.synthetic_design import held_out_splits
 from m3t.corpora.synthetic_lexicon import build_lexicon, make_sentence, zipf_weights
 from m3t.shards.folders import DataConfig
 

@@ -20,9 +20,11 @@ import pytest
 import torch
 
 from m3t.config import load_params
-from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
+from m3t.corpora.synthetic import generate_corpus
+from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
 from m3t.fitting.cluster import DaskExecutor, SchedulerLost, on_worker, open_executor
-from m3t.fitting.corpus import FitContext, run_fit_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import run_fit_corpus
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIPS = 3

@@ -1,4 +1,4 @@
-"""fit-corpus's engine (:mod:`m3t.fitting.corpus`) in detail: what the content keys of tracks, fits, batch fits and
+"""fit-corpus's engine (:mod:`m3t.fitting.corpus` and the modules it runs) in detail: what the content keys of tracks, fits, batch fits and
 imports follow (the key version included); how one signer's batch treats its failing and fused clips; the quarantine
 record; the cache's integrity checks; which config sections and artifact folders the MLflow run of a corpus gets.
 Written to pin behaviours that mutation testing found unchecked. Corpora: a hand-written synthetic corpus
@@ -24,15 +24,11 @@ from builders import front_camera, smooth_motion
 
 from m3t.config import load_params
 from m3t.corpora.clip import Clip
-from m3t.corpora.synthetic import SyntheticClip, write_corpus
-from m3t.fitting.corpus import (
-    NO_EXTERNAL,
-    FitContext,
-    process_batch,
-    process_clip,
-    track_clip,
-)
+from m3t.corpora.synthetic_storage import SyntheticClip, write_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.per_clip import NO_EXTERNAL, process_clip, track_clip
 from m3t.fitting.report import ClipOutcome
+from m3t.fitting.signer_batches import process_batch
 from m3t.shards.io import read_shard
 from m3t.trackers.track import load_track
 
@@ -131,6 +127,7 @@ def test_a_synthetic_track_is_keyed_by_its_media_the_tracker_and_the_body_model(
 # ------------------------------------------------------------------------------------------ one clip
 def test_a_synthetic_fit_records_what_refinement_gained_over_the_tracker(body, synthetic_root, tmp_path):
     from m3t.fitting.evaluate import joints_for, procrustes_error_mm
+    from m3t.trackers.dispatch import ground_truth
 
     ctx = synthetic_ctx(tmp_path, synthetic_root, body)
     clip = clips_of(ctx)["s1-a"]
@@ -141,7 +138,7 @@ def test_a_synthetic_fit_records_what_refinement_gained_over_the_tracker(body, s
     fitted = read_shard(outcome.part).clips[0]
     assert fitted.metrics == outcome.metrics and fitted.key in Path(outcome.part).name
     track = load_track(track_clip(clip, ctx))
-    params, identity, _ = ctx.ground_truth(clip)
+    params, identity, _ = ground_truth(clip, ctx.corpus.root)
     with torch.no_grad():
         want = procrustes_error_mm(joints_for(body, track.init, body.default_identity().numpy()),
                                    joints_for(body, params, identity))
@@ -388,8 +385,9 @@ def artifacts(client, run_id: str, folder: str | None = None) -> set[str]:
 @pytest.mark.slow
 def test_a_synthetic_run_logs_its_sections_quality_and_fit_pictures(body, synthetic_root, tmp_path, monkeypatch):
     import m3t.fitting.corpus as engine
+    from m3t.fitting import context
 
-    monkeypatch.setattr(engine, "load_body_model", lambda cfg: body)  # the session's Anny, not a second build
+    monkeypatch.setattr(context, "load_body_model", lambda cfg: body)  # the session's Anny, not a second build
     cfg, client = file_store(tmp_path, monkeypatch)
     job = fit_job(tmp_path, "synthetic", synthetic_root, fit_corpus={"max_clips": 1, "render_clips": 1})
     report = engine.fit_and_log(job, cfg, progress=False)
@@ -429,7 +427,7 @@ def test_a_real_corpus_run_logs_the_fusion_section_and_no_tracker(tmp_path, monk
 
 # ------------------------------------------------------------------------------------------ keys and paths
 def test_a_jobs_key_follows_its_content_not_the_order_options_were_written_in(tmp_path):
-    from m3t.fitting.corpus import worker_context
+    from m3t.fitting.context import worker_context
 
     def job(options):
         return fit_job(tmp_path, "posefile", tmp_path, options)
@@ -443,7 +441,7 @@ def test_a_jobs_key_follows_its_content_not_the_order_options_were_written_in(tm
 
 
 def test_a_clips_part_file_lies_in_the_parts_folder_of_the_cache(tmp_path):
-    from m3t.fitting.corpus import part_path
+    from m3t.fitting.cache import part_path
 
     ctx = FitContext(fit_job(tmp_path, "synthetic", tmp_path))
     clip = Clip("session/c1", "synthetic", "train", "ASL-SYN", "s0", "", "", "motion/c1.npz", 25.0)
@@ -498,12 +496,12 @@ def test_an_import_refused_at_its_id_is_quarantined_with_every_field(tmp_path):
 def test_a_video_clips_track_follows_its_bytes_its_frame_rate_and_the_mediapipe_settings(pose_root, tmp_path,
                                                                                           monkeypatch):
     """MediaPipe is replaced by a recorder returning a real track: the cache key is what is tested."""
-    import m3t.fitting.corpus as engine
+    from m3t.trackers import dispatch
 
     pose = pose_ctx(tmp_path, pose_root, None)
     track = load_track(track_clip(clips_of(pose)["plain-a"], pose))
     tracked = []
-    monkeypatch.setattr(engine, "track_real_clip",
+    monkeypatch.setattr(dispatch, "track_real_clip",
                         lambda clip, root, cfg: tracked.append((clip.id, root, cfg)) or track)
     videos = tmp_path / "videos"
     videos.mkdir()
@@ -526,7 +524,7 @@ def test_a_video_clips_track_follows_its_bytes_its_frame_rate_and_the_mediapipe_
 
 
 def test_a_failed_batch_fit_fits_the_clips_it_had_not_finished_one_by_one(body, synthetic_root, tmp_path, monkeypatch):
-    import m3t.fitting.corpus as engine
+    from m3t.fitting import signer_batches
 
     ctx = synthetic_ctx(tmp_path, synthetic_root, body, fit_corpus={"batch_clips": 2})
     clips = clips_of(ctx)
@@ -537,7 +535,7 @@ def test_a_failed_batch_fit_fits_the_clips_it_had_not_finished_one_by_one(body, 
     def diverges(tracks, ctx):
         raise FloatingPointError("the batch fit diverged")
 
-    monkeypatch.setattr(engine, "fit_signer_batch", diverges)
+    monkeypatch.setattr(signer_batches, "fit_signer_batch", diverges)
     outcomes = process_batch(pair, ctx)
     assert [(o.clip_id, o.status) for o in outcomes] == [("s0-b", "cached"), ("s0-c", "fitted")]
     assert outcomes[0].part == batch[0].part and outcomes[1].part != batch[1].part
@@ -558,9 +556,10 @@ def test_fit_and_log_hands_the_mlflow_run_the_ground_truth_of_synthetic_clips(bo
     sections, the report, the body model to picture with and, for synthetic clips, their ground truth."""
     import m3t.fitting.corpus as engine
     import m3t.fitting.report as reporting
-    from m3t.corpora.synthetic import SyntheticCorpus
+    from m3t.corpora.synthetic_storage import SyntheticCorpus
+    from m3t.fitting import context
 
-    monkeypatch.setattr(engine, "load_body_model", lambda cfg: body)
+    monkeypatch.setattr(context, "load_body_model", lambda cfg: body)
     logged = []
     monkeypatch.setattr(reporting, "log_fit_corpus", lambda *args: logged.append(args) or "run-id")
     job = fit_job(tmp_path, "synthetic", synthetic_root, fit_corpus={"max_clips": 1, "render_clips": 1})
@@ -615,7 +614,7 @@ def test_the_progress_bar_counts_the_quarantined_clips_as_they_come(tmp_path, ca
 def test_fits_cached_under_an_older_key_version_are_redone(body, synthetic_root, tmp_path, monkeypatch):
     """Bumping ``KEY_VERSION`` (fitting code changed) invalidates a signer batch's cached fit: nothing computed
     under the older version is reused."""
-    import m3t.fitting.corpus as corpus
+    from m3t.fitting import cache
 
     def ctx():
         return synthetic_ctx(tmp_path, synthetic_root, body, fit_corpus={"batch_clips": 2})
@@ -625,7 +624,7 @@ def test_fits_cached_under_an_older_key_version_are_redone(body, synthetic_root,
     first = process_batch(pair, ctx())
     assert {o.status for o in first} == {"fitted"}
     assert {o.status for o in process_batch(pair, ctx())} == {"cached"}
-    monkeypatch.setattr(corpus, "KEY_VERSION", corpus.KEY_VERSION + "-next")
+    monkeypatch.setattr(cache, "KEY_VERSION", cache.KEY_VERSION + "-next")
     again = process_batch(pair, ctx())
     assert {o.status for o in again} == {"fitted"}
     assert not {o.part for o in again} & {o.part for o in first}
@@ -644,11 +643,12 @@ def test_a_batch_sent_to_a_worker_is_processed_with_that_workers_context(tmp_pat
 
 def test_a_real_clips_track_name_follows_the_key_version(pose_root, tmp_path, monkeypatch):
     """A code change that bumps ``KEY_VERSION`` retracks every clip: its track file gets another name."""
-    import m3t.fitting.corpus as engine
+    from m3t.fitting import cache
+    from m3t.trackers import dispatch
 
     pose = pose_ctx(tmp_path, pose_root, None)
     track = load_track(track_clip(clips_of(pose)["plain-a"], pose))
-    monkeypatch.setattr(engine, "track_real_clip", lambda clip, root, cfg: track)
+    monkeypatch.setattr(dispatch, "track_real_clip", lambda clip, root, cfg: track)
     videos = tmp_path / "videos"
     videos.mkdir()
     (videos / "v1.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42 first")
@@ -656,7 +656,7 @@ def test_a_real_clips_track_name_follows_the_key_version(pose_root, tmp_path, mo
     ctx = FitContext(fit_job(tmp_path, "posefile", videos, {"index": "index.csv"}))
     clip = Clip("v1", "posefile", "train", "ase", "s0", "", "", "v1.mp4", 25.0, extra=(("media_kind", "video"),))
     first = track_clip(clip, ctx)
-    monkeypatch.setattr(engine, "KEY_VERSION", engine.KEY_VERSION + "-next")
+    monkeypatch.setattr(cache, "KEY_VERSION", cache.KEY_VERSION + "-next")
     second = track_clip(clip, ctx)
     assert second != first and second.parent == first.parent and second.name.startswith("v1-")
     monkeypatch.undo()

@@ -13,7 +13,7 @@ import torch
 
 from m3t.config import load_params
 from m3t.corpora.clip import Clip
-from m3t.fitting.corpus import FitContext
+from m3t.fitting.context import FitContext
 from m3t.fitting.report import ClipOutcome
 
 ROOT = Path(__file__).resolve().parents[2]

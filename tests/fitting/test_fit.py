@@ -9,12 +9,8 @@ import torch
 from builders import front_camera, smooth_motion
 
 from m3t.fitting.evaluate import ground_truth_errors, joints_for, procrustes_error_mm
-from m3t.fitting.fit import (
-    FittingConfig,
-    acceleration_loss,
-    fit_track,
-    reprojection_loss,
-)
+from m3t.fitting.fit import FittingConfig, fit_track
+from m3t.fitting.objective import acceleration_loss, reprojection_loss
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
 from m3t.trackers.track import TrackError, load_track, save_track
 

@@ -14,13 +14,11 @@ import torch
 from builders import front_camera, smooth_motion
 
 from m3t.fitting.evaluate import ground_truth_errors
-from m3t.fitting.fit import (
-    FittingConfig,
-    _Pack,
-    _Terms,
+from m3t.fitting.fit import FittingConfig, fit_track, fit_tracks
+from m3t.fitting.objective import (
+    ClipPack,
+    ClipTerms,
     acceleration_loss,
-    fit_track,
-    fit_tracks,
     reprojection_loss,
 )
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
@@ -43,12 +41,12 @@ def clips(body):
 
 def test_packed_terms_are_the_clips_own_terms(clips):
     tracks = [t for _, t in clips]
-    pack = _Pack([t.num_frames for t in tracks], torch.device("cpu"))
+    pack = ClipPack([t.num_frames for t in tracks], torch.device("cpu"))
     parts = list(landmark_slices(tracks[0].landmark_set).values())
     conf = torch.cat([torch.as_tensor(t.confidence) for t in tracks])
     conf[:9, parts[1]] = 0  # one clip without its first hand: that part leaves its mean
     valid = torch.ones(conf.shape[1], dtype=torch.bool)
-    terms = _Terms(pack, conf, parts, valid)
+    terms = ClipTerms(pack, conf, parts, valid)
     g = torch.Generator().manual_seed(0)
     target = torch.rand(conf.shape[0], conf.shape[1], 2, generator=g) * 500
     uv = target + torch.randn(target.shape, generator=g) * 3
@@ -72,10 +70,10 @@ def test_a_clips_infinite_or_nan_values_reach_no_other_clips_terms_or_gradients(
     fingerspelling clip stopped at 46 evaluations, 31 px instead of 10 px). Each clip's terms and gradients must
     stay its own."""
     tracks = [t for _, t in clips]
-    pack = _Pack([t.num_frames for t in tracks], torch.device("cpu"))
+    pack = ClipPack([t.num_frames for t in tracks], torch.device("cpu"))
     parts = list(landmark_slices(tracks[0].landmark_set).values())
     conf = torch.cat([torch.as_tensor(t.confidence) for t in tracks])
-    terms = _Terms(pack, conf, parts, torch.ones(conf.shape[1], dtype=torch.bool))
+    terms = ClipTerms(pack, conf, parts, torch.ones(conf.shape[1], dtype=torch.bool))
     g = torch.Generator().manual_seed(1)
     target = torch.rand(conf.shape[0], conf.shape[1], 2, generator=g) * 500
     clean_uv = target + torch.randn(target.shape, generator=g) * 3
@@ -157,8 +155,10 @@ def test_the_engine_fits_a_signers_clips_with_one_identity(body, tmp_path):
     """fit-corpus batches by signer: every clip of a signer gets the same identity, and a rerun is all cached."""
     from builders import tiny_params
 
-    from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
-    from m3t.fitting.corpus import FitContext, plan_batches, run_fit_corpus
+    from m3t.corpora.synthetic import generate_corpus
+    from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
+    from m3t.fitting.context import FitContext
+    from m3t.fitting.corpus import plan_batches, run_fit_corpus
     from m3t.shards.io import read_shard
 
     params = tiny_params(tmp_path, batch_clips=3, batch_frames=60, workers=1)

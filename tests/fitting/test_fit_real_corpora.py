@@ -12,7 +12,9 @@ import pytest
 
 from m3t.config import ConfigError, load_params
 from m3t.corpora.clip import Clip
-from m3t.fitting.corpus import FitContext, list_corpus, process_clip, run_fit_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import list_corpus, run_fit_corpus
+from m3t.fitting.per_clip import process_clip
 from m3t.trackers.track import Track, TrackError, load_track, save_track
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -59,13 +59,14 @@ def test_a_batch_names_its_tracks_without_any_visible_landmark(body, short_track
 
 def test_adam_steps_decay_on_a_cosine_to_five_percent_of_the_rate():
     """On a linear objective every Adam step moves the variable by the current learning rate."""
-    from m3t.fitting.fit import FittingConfig, _minimise
+    from m3t.fitting.fit import FittingConfig
+    from m3t.fitting.solvers import minimise
 
     x = torch.zeros(1, requires_grad=True)
     curve: list[float] = []
     projected = []
     cfg = FittingConfig(solver="adam", iterations=20, camera_iterations=3)
-    _minimise(lambda: x.sum(), [x], cfg, "full", 0.1, curve, project_bounds=lambda: projected.append(1))
+    minimise(lambda: x.sum(), [x], cfg, "full", 0.1, curve, project_bounds=lambda: projected.append(1))
     positions = [0.0, *curve[1:], float(x.detach())]
     steps = -np.diff(positions)  # step k: the rate after k decays
     assert len(curve) == 20 and len(projected) == 20 and curve[0] == 0.0
@@ -75,21 +76,22 @@ def test_adam_steps_decay_on_a_cosine_to_five_percent_of_the_rate():
     assert steps[10] == pytest.approx(0.1 * (0.05 + 0.95 * 0.5), rel=1e-4)  # half-way: half of the decay
 
     camera: list[float] = []
-    _minimise(lambda: x.sum(), [x], cfg, "camera", 0.1, camera)
+    minimise(lambda: x.sum(), [x], cfg, "camera", 0.1, camera)
     assert len(camera) == 3  # the camera stage's own budget
 
 
 def test_lbfgs_spends_at_most_its_evaluation_budget():
-    from m3t.fitting.fit import FittingConfig, _minimise
+    from m3t.fitting.fit import FittingConfig
+    from m3t.fitting.solvers import minimise
 
     x = torch.tensor([3.0, -2.0], requires_grad=True)
     curve: list[float] = []
     cfg = FittingConfig(solver="lbfgs", iterations=7, lbfgs_round=3)
-    _minimise(lambda: ((x - 1.0) ** 2).sum(), [x], cfg, "full", 0.0, curve)
+    minimise(lambda: ((x - 1.0) ** 2).sum(), [x], cfg, "full", 0.0, curve)
     assert 0 < len(curve) <= 7 and curve[-1] < 1e-6 < curve[0]
     untouched = torch.tensor([3.0], requires_grad=True)
     none: list[float] = []
-    _minimise(lambda: (untouched ** 2).sum(), [untouched], FittingConfig(solver="lbfgs", iterations=0), "full", 0.0,
+    minimise(lambda: (untouched ** 2).sum(), [untouched], FittingConfig(solver="lbfgs", iterations=0), "full", 0.0,
               none)
     assert none == [] and float(untouched.detach()) == 3.0
 
@@ -102,11 +104,12 @@ def fitted(batch) -> list[ClipOutcome]:
 def test_lbfgs_line_search_reaches_the_minimum_of_a_robust_loss():
     """A pseudo-Huber loss (curvature vanishing far from its minimum): full quasi-Newton steps overshoot and run
     away; the strong-Wolfe line search keeps every step a descent and reaches the minimum within the budget."""
-    from m3t.fitting.fit import FittingConfig, _minimise
+    from m3t.fitting.fit import FittingConfig
+    from m3t.fitting.solvers import minimise
 
     x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
     curve: list[float] = []
-    _minimise(lambda: torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30), "full",
+    minimise(lambda: torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30), "full",
               0.0, curve)
     assert len(curve) <= 30 and curve[-1] == pytest.approx(3.0, abs=1e-9)
     np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-4)
@@ -155,7 +158,8 @@ def test_the_camera_is_placed_from_the_torso_and_head_points_alone(body, short_t
 
 def test_refinement_starts_from_the_fused_initialisation_and_identity(body, short_track):
     from m3t.fitting.fit import FittingConfig
-    from m3t.fitting.fusion import FusedInit, refine
+    from m3t.fitting.fusion import refine
+    from m3t.fitting.stream_fusion import FusedInit
 
     cfg = FittingConfig(iterations=0, camera_iterations=1)  # no joint stage: the result is where it started
     init = {k: v[::-1].copy() for k, v in short_track.init.items()}  # another valid motion than the track's own
@@ -171,7 +175,7 @@ def test_refinement_starts_from_the_fused_initialisation_and_identity(body, shor
 
 
 def test_reprojection_loss_weighs_each_part_by_its_own_confidence_even_when_it_is_small():
-    from m3t.fitting.fit import reprojection_loss
+    from m3t.fitting.objective import reprojection_loss
 
     pred = torch.zeros(2, 3, 2)
     target = torch.zeros(2, 3, 2)
@@ -237,11 +241,12 @@ def test_bounded_streams_enter_the_objective_clamped_to_their_bounds(body, short
 def test_lbfgs_minimises_a_loss_of_tiny_absolute_size_too():
     """Only the relative ``tolerance`` stops the solver early: a loss whose values are a millionth of the usual
     (the pseudo-Huber loss above, scaled) still reaches its minimum."""
-    from m3t.fitting.fit import FittingConfig, _minimise
+    from m3t.fitting.fit import FittingConfig
+    from m3t.fitting.solvers import minimise
 
     x = torch.tensor([0.0, 10.0, -5.0], dtype=torch.float64, requires_grad=True)
     curve: list[float] = []
-    _minimise(lambda: 1e-6 * torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30),
+    minimise(lambda: 1e-6 * torch.sqrt(1 + (x - 3.0) ** 2).sum(), [x], FittingConfig(solver="lbfgs", iterations=30),
               "full", 0.0, curve)
     assert 2 < len(curve) <= 30 and curve[-1] == pytest.approx(3e-6, rel=1e-6)
     np.testing.assert_allclose(x.detach().numpy(), 3.0, atol=1e-3)

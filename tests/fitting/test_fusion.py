@@ -27,16 +27,15 @@ from m3t.body.protocol import Modality, ModalityLayout
 from m3t.fitting.config import FittingConfig, FusionConfig
 from m3t.fitting.fit import FitResult, fit_track
 from m3t.fitting.fusion import (
-    HELD,
-    INTERPOLATED,
-    REST,
     FusionUnsupported,
     describe,
     initialise_from_trackers,
     refine,
 )
-from m3t.trackers.external import TrackerFileError, TrackerOutputs, find_tracker_outputs
+from m3t.fitting.stream_fusion import HELD, INTERPOLATED, REST
+from m3t.trackers.external import TrackerOutputs, find_tracker_outputs
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
+from m3t.trackers.tracker_files import TrackerFileError
 
 ALL = ("nlf", "wilor", "pixel3dmm")
 
@@ -293,8 +292,8 @@ def test_unusable_tracker_streams_name_the_first_three_offending_labels():
 
 
 def face_estimates(frames: list[int], expression_dims: int = 100):
-    """Pixel3DMM's per-frame estimates as :func:`m3t.trackers.external.read_pixel3dmm` returns them."""
-    from m3t.trackers.external import FaceEstimates
+    """Pixel3DMM's per-frame estimates as :func:`m3t.trackers.pixel3dmm_reader.read_pixel3dmm` returns them."""
+    from m3t.trackers.pixel3dmm_reader import FaceEstimates
 
     n = len(frames)
     rng = np.random.default_rng(4)
@@ -306,7 +305,7 @@ def face_estimates(frames: list[int], expression_dims: int = 100):
 def test_pixel3dmm_face_values_land_on_their_frames_of_a_flame_face_layout():
     from m3t.body.protocol import Modality, ModalityLayout
     from m3t.body.smplfx import smplfx_layout
-    from m3t.fitting.fusion import pixel3dmm_stream
+    from m3t.fitting.tracker_streams import pixel3dmm_stream
 
     face = face_estimates([0, 2, 7])
     stream = pixel3dmm_stream(face, smplfx_layout(100), 5)  # frame 7 lies outside the 5-frame clip
@@ -325,10 +324,10 @@ def test_fusion_interpolates_rotations_along_the_geodesic_and_scalars_linearly()
     import roma
 
     from m3t.body.protocol import Modality, ModalityLayout
-    from m3t.fitting.fusion import (
+    from m3t.fitting.config import FusionConfig
+    from m3t.fitting.stream_fusion import (
         INTERPOLATED,
         REST,
-        FusionConfig,
         TrackerStream,
         fuse,
         rot_to_flat6d,
@@ -362,7 +361,8 @@ def test_fusion_interpolates_rotations_along_the_geodesic_and_scalars_linearly()
 
 
 def test_the_initialisation_record_says_which_tracker_gave_each_modalitys_frames():
-    from m3t.fitting.fusion import HELD, INTERPOLATED, REST, FusedInit, describe
+    from m3t.fitting.fusion import describe
+    from m3t.fitting.stream_fusion import HELD, INTERPOLATED, REST, FusedInit
 
     source = {"body": np.array([0, 0, INTERPOLATED, HELD]), "face": np.full(4, REST),
               "left_hand": np.array([1, 1, 0, REST])}
@@ -385,7 +385,8 @@ def test_the_initialisation_record_says_which_tracker_gave_each_modalitys_frames
 
 
 def test_a_one_frame_fused_initialisation_shares_its_single_frame_fully():
-    from m3t.fitting.fusion import HELD, REST, FusedInit, describe
+    from m3t.fitting.fusion import describe
+    from m3t.fitting.stream_fusion import HELD, REST, FusedInit
 
     fused = FusedInit(init={"body": np.zeros((1, 3)), "face": np.zeros((1, 2))},
                       source={"body": np.array([0]), "face": np.array([REST])},
@@ -401,7 +402,7 @@ def test_a_one_frame_fused_initialisation_shares_its_single_frame_fully():
 
 def test_a_modality_without_tracker_streams_has_no_frames():
     from m3t.fitting.config import FusionConfig
-    from m3t.fitting.fusion import fuse_modality
+    from m3t.fitting.stream_fusion import fuse_modality
 
     values, source = fuse_modality([], np.zeros(6), True, FusionConfig())
     assert values.shape == (0, 6) and values.dtype == np.float32 and source.shape == (0,)
@@ -421,7 +422,8 @@ def test_a_face_tracker_can_write_an_identity_with_a_single_flame_shape_coeffici
 
 
 def test_two_streams_of_one_tracker_add_up_in_the_initialisation_record():
-    from m3t.fitting.fusion import REST, FusedInit, describe
+    from m3t.fitting.fusion import describe
+    from m3t.fitting.stream_fusion import REST, FusedInit
 
     source = {"body": np.array([0, 1, 1, REST])}
     fused = FusedInit({}, source, {"body": ("nlf:a", "nlf:b")}, None)

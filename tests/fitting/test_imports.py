@@ -21,9 +21,10 @@ from m3t.body.rotations import sixd_to_matrix
 from m3t.config import load_params
 from m3t.corpora.base import open_corpus
 from m3t.corpora.clip import Clip
-from m3t.corpora.fitted_pickles import load_smplx_sequence
 from m3t.corpora.mead import read_flame_params
-from m3t.fitting.corpus import FitContext, run_fit_corpus
+from m3t.corpora.soke_smplx import load_smplx_sequence
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import run_fit_corpus
 from m3t.fitting.imports import BODY_POSE_INDEX, IMPORTERS, face_layout, smplfx_layout
 from m3t.fitting.report import ClipOutcome
 from m3t.shards.io import read_shard

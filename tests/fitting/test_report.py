@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from m3t.corpora.clip import Clip
-from m3t.fitting.corpus import NO_EXTERNAL
+from m3t.fitting.per_clip import NO_EXTERNAL
 from m3t.fitting.report import ClipOutcome
 
 
@@ -100,7 +100,7 @@ def test_the_import_summary_covers_imported_clips_only():
 
 
 def test_the_listings_refused_rows_become_quarantine_records():
-    from m3t.corpora.base import Listing, Quarantined
+    from m3t.corpora.listing import Listing, Quarantined
     from m3t.fitting.corpus import listing_outcomes
 
     listing = Listing((), (Quarantined("index.csv", 7, "c7", "no split: 'val' is not train, dev or test; fix row 7"),
@@ -176,7 +176,7 @@ def test_the_run_summary_counts_clips_and_averages_fit_metrics_of_fitted_clips_o
 
 
 def test_consolidate_creates_a_nested_shards_folder_and_writes_every_split(tmp_path):
-    from m3t.corpora.base import SPLITS
+    from m3t.corpora.splits import SPLITS
     from m3t.fitting.imports import ImportSettings
     from m3t.fitting.report import consolidate
 
@@ -271,7 +271,7 @@ def test_the_run_log_names_the_corpus_variant_and_draws_each_fit_against_its_tru
 
 
 def test_a_listing_quarantine_is_grouped_by_its_reason_up_to_the_first_semicolon():
-    from m3t.corpora.base import Listing, Quarantined
+    from m3t.corpora.listing import Listing, Quarantined
     from m3t.fitting.corpus import listing_outcomes
 
     reasons = ("split 'foo'; expected one of train, dev, val, test", "bad times: end 5.0 s <= start 5.0 s",

@@ -21,8 +21,10 @@ import pyarrow.parquet as pq
 import torch
 from builders import tiny_params
 
-from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
-from m3t.fitting.corpus import FitContext, run_fit_corpus
+from m3t.corpora.synthetic import generate_corpus
+from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import run_fit_corpus
 from m3t.tokenizers.pipeline import run_train_tokenizers
 from m3t.tokenizers.tokenize import run_tokenize
 

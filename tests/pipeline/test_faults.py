@@ -15,8 +15,10 @@ import pytest
 
 from m3t.atomic import atomic_path, run_lock
 from m3t.config import load_params
-from m3t.corpora.synthetic import generate_corpus, write_corpus
-from m3t.fitting.corpus import LOCK_NAME, FitContext, run_fit_corpus
+from m3t.corpora.synthetic import generate_corpus
+from m3t.corpora.synthetic_storage import write_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import LOCK_NAME, run_fit_corpus
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))

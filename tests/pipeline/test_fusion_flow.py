@@ -23,7 +23,7 @@ from smplfx_fixtures import ensure_fixture_files, fixture_body
 from m3t.config import load_params
 from m3t.corpora.fingerspelling import lexicon_root
 from m3t.experiment import to_dict
-from m3t.fitting.corpus import NO_EXTERNAL
+from m3t.fitting.per_clip import NO_EXTERNAL
 from m3t.shards.io import read_shard
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -15,9 +15,11 @@ import yaml
 from builders import tiny_params
 
 from m3t.config import load_params
-from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
+from m3t.corpora.synthetic import generate_corpus
+from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
 from m3t.experiment import to_dict
-from m3t.fitting.corpus import FitContext, fit_batch, plan_batches, run_fit_corpus
+from m3t.fitting.context import FitContext
+from m3t.fitting.corpus import fit_batch, plan_batches, run_fit_corpus
 from m3t.shards.io import read_shard
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""``m3t study`` (flows/study.py) without training: the plan holds every (variant, seed) the claims read exactly once,
+"""``m3t study`` (cli/study.py, cli/study_plan.py) without training: the plan holds every (variant, seed) the claims read exactly once,
 on paths under the study's root; a fake runner (the injectable ``(argv, env, log) -> exit code``) stands in for the
 stage subprocesses to check resuming, failures and the command line.
 """
@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flows.cli import main as cli_main
-from flows.study import StudyError, plan, run, select, study
+from cli.main import main as cli_main
+from cli.study import run, study
+from cli.study_plan import StudyError, plan, select
 from m3t.config import load_params
 
 ROOT = Path(__file__).resolve().parents[2]

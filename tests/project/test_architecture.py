@@ -21,7 +21,7 @@ from tools.code_deps import DVC_YAML, ROOT, code_deps, imports, is_code, modules
 # model's runs.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment", "m3t.dataclass_io",
-              "m3t.reporting", "m3t.digest",
+              "m3t.reporting", "m3t.digest", "m3t.optimizer", "m3t.checkpoints", "m3t.training_jobs",
               "m3t.positional_encoding", "m3t.vocabulary")),
     ("body", ("m3t.body",)),
     ("corpora", ("m3t.corpora",)),
@@ -37,7 +37,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("stages", ("m3t.stages",)),
     ("dashboards", ("dashboards",)),
     ("flows", ("flows",)),
-    ("surfaces", ("flows.cli", "flows.services")),
+    ("cli", ("cli",)),
 )
 
 
@@ -109,6 +109,29 @@ def test_dvc_deps_are_the_code_a_stage_runs(stage):
     assert not missing and not unused, (
         f"dvc.yaml stage {stage}: code deps out of date (run python tools/code_deps.py)\n"
         f"  runs but does not declare: {missing}\n  declares but never imports: {unused}")
+
+
+@pytest.mark.parametrize("stage", sorted(stage_modules(DVC_YAML.read_text())))
+def test_a_stage_depends_on_the_config_of_each_section_it_reads(stage):
+    """``m3t.config`` imports section classes only when params are loaded, so a section's config module is a
+    code dep of exactly the stages that import it. A stage declaring a whole section in ``params`` must import
+    its config module (its methods and defaults are code the stage runs); a stage declaring single keys reads
+    plain values, which DVC tracks in params.yaml. Every stage computes folders with ``data``'s methods."""
+    from m3t.config import SECTIONS
+
+    spec = yaml.safe_load(DVC_YAML.read_text())["stages"][stage]
+    files = set(code_deps(stage_modules(DVC_YAML.read_text())[stage]))
+    whole = {str(k) for k in spec.get("params", []) if "." not in str(k)} | {"data"}
+    missing = [f"{s} ({m})" for s in sorted(whole) if SECTIONS.get(s)
+               for m in [SECTIONS[s].split(":")[0].replace(".", "/") + ".py"] if m not in files]
+    assert not missing, f"dvc.yaml stage {stage} reads sections whose config it never imports: {missing}"
+
+
+def test_generate_corpus_does_not_depend_on_model_configs():
+    """The case that motivated lazy section classes: an SGSA or SMLM default must not rerun the corpus."""
+    files = code_deps("m3t.stages.generate_corpus")
+    assert not [f for f in files if f.endswith("/config.py") and f.split("/")[1] in
+                ("sgsa", "smlm", "slr", "backtranslation", "tokenizers", "fitting")], files
 
 
 def test_code_deps_follow_imports_inside_functions(tmp_path, monkeypatch):

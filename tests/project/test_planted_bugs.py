@@ -23,7 +23,7 @@ def test_reprojection_loss_weights_each_point_by_its_confidence():
     """Bug: the keypoint loss L_kp no longer weighting by confidence (a point tracked at 0.1 counting as much
     as one at 1.0). The loss is checked against the weighted mean written out by hand, for the one-clip loss
     and for the batched objective the fitter minimises."""
-    from m3t.fitting.fit import _Pack, _Terms, reprojection_loss
+    from m3t.fitting.objective import ClipPack, ClipTerms, reprojection_loss
 
     target = torch.zeros(2, 4, 2)
     pred = torch.tensor([[[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [0.0, 0.0]],
@@ -33,7 +33,7 @@ def test_reprojection_loss_weights_each_point_by_its_confidence():
     # part 0: (1*1 + 0.5*4 + 0.25*1 + 1*0) / (1 + 0.5 + 0.25 + 1); part 1: (0.1*9 + 0.2*16) / (0.1 + 1 + 0.2)
     want = 0.5 * ((1.0 + 2.0 + 0.25) / 2.75 + (0.9 + 3.2) / 1.3)
     assert float(reprojection_loss(pred, target, conf, parts)) == pytest.approx(want, rel=1e-6)
-    terms = _Terms(_Pack([2], torch.device("cpu")), conf, parts, torch.ones(4, dtype=torch.bool))
+    terms = ClipTerms(ClipPack([2], torch.device("cpu")), conf, parts, torch.ones(4, dtype=torch.bool))
     assert float(terms.reprojection(pred, target)[0]) == pytest.approx(want, rel=1e-6)
 
 
@@ -106,8 +106,10 @@ def test_changed_fitting_config_refits_instead_of_reusing_cached_fits(body, tmp_
     together) and a clip fitted alone."""
     from builders import tiny_params
 
-    from m3t.corpora.synthetic import SyntheticCorpus, generate_corpus, write_corpus
-    from m3t.fitting.corpus import FitContext, run_fit_corpus
+    from m3t.corpora.synthetic import generate_corpus
+    from m3t.corpora.synthetic_storage import SyntheticCorpus, write_corpus
+    from m3t.fitting.context import FitContext
+    from m3t.fitting.corpus import run_fit_corpus
 
     torch.set_num_threads(1)
     params = tiny_params(tmp_path, batch_clips=2)

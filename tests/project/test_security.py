@@ -1,18 +1,18 @@
-"""Security checks of the library (m3t/, flows/, dashboards/), run by the README's test command.
+"""Security checks of the library (m3t/, flows/, dashboards/, cli/), run by the README's test command.
 
 1. Lint: ruff's flake8-bandit rules (``--select S``) report nothing. Accepted findings, each suppressed where it
    occurs (``# noqa: S...`` with its reason, or ``[tool.ruff.lint.per-file-ignores]`` in pyproject.toml):
 
-   - S603 ``flows/cli.py`` ``_cmd_ablate`` / ``_cmd_sgsa_sweep``: ``subprocess.call`` of the ``dvc exp run``
+   - S603 ``cli/experiments.py`` ``cmd_ablate`` / ``cmd_sgsa_sweep``: ``subprocess.call`` of the ``dvc exp run``
      argv list that ``dvc_command`` builds, no shell;
-   - S603 ``flows/services.py`` ``start``: ``subprocess.Popen`` of the argv list that ``plan()`` builds, no shell;
-   - S310 ``flows/services.py`` ``_http``: ``urllib.request`` on a health URL; ``_http`` refuses anything but
+   - S603 ``cli/processes.py`` ``start``: ``subprocess.Popen`` of the argv list that ``plan()`` builds, no shell;
+   - S310 ``cli/services.py`` ``_http``: ``urllib.request`` on a health URL; ``_http`` refuses anything but
      ``http://`` / ``https://`` first (the URLs come from ``services.json``, a file on disk);
    - S606 ``m3t/arithmetic.py`` ``_restart``: ``os.execve`` of this process's own interpreter and argv, in the
      pinned environment of ``M3T_REPRODUCIBLE=1``;
-   - S104 ``flows/services.py`` ``plan``: the string ``"0.0.0.0"`` is compared with ``--host`` to pick the address
+   - S104 ``cli/services.py`` ``plan``: the string ``"0.0.0.0"`` is compared with ``--host`` to pick the address
      clients connect to; nothing binds it;
-   - S101 ``m3t/body/anny_body.py``, ``m3t/body/build_correspondence.py``, ``m3t/shards/dataset.py``: asserts on
+   - S101 ``m3t/body/anny_body.py``, ``tools/build_correspondence.py``, ``m3t/shards/dataset.py``: asserts on
      internal invariants (Anny's bone order and blendshapes, the hand-joint table, a type narrowing), never on
      user input.
 
@@ -21,15 +21,16 @@
 2. Deserialisation (an AST scan, so aliases such as ``from torch import load`` count): every ``torch.load`` passes
    ``weights_only=True`` and every ``np.load`` ``allow_pickle=False``, literally; ``pickle.load`` / ``loads`` /
    ``Unpickler`` appear only in the restricted unpickler ``m3t.body.model_files.SafeModelUnpickler`` (which
-   ``m3t.corpora.base.CorpusUnpickler`` extends); no ``eval`` / ``exec``, ``yaml.load``, ``joblib`` / ``dill`` /
-   ``shelve`` / ``marshal`` / ``pandas.read_pickle``; Hugging Face loads are ``local_files_only=True`` and never
-   ``trust_remote_code``. :data:`ALLOWED` lists exceptions with their reasons; it is empty (the Anny cavity file,
-   once loaded with ``weights_only=False``, holds two lists of ints and loads with ``weights_only=True``).
+   ``m3t.corpora.annotation_files.CorpusUnpickler`` extends); no ``eval`` / ``exec``, ``yaml.load``, ``joblib`` /
+   ``dill`` / ``shelve`` / ``marshal`` / ``pandas.read_pickle``; Hugging Face loads are ``local_files_only=True``
+   and never ``trust_remote_code``. :data:`ALLOWED` lists exceptions with their reasons; it is empty (the Anny
+   cavity file, once loaded with ``weights_only=False``, holds two lists of ints and loads with
+   ``weights_only=True``).
 3. Servers bind 127.0.0.1 by default: ``ServicesConfig.host``, ``m3t up`` / ``m3t serve``, ``plan()``'s commands and
    URLs, and every ``dashboard_address`` literal (distributed binds ``":0"`` on all interfaces).
 4. Paths from params values: the soke_smplx annotation CSV and the slt_pickle files are refused, unopened, when
    they lead outside the corpus root (``..``, absolute, a symbolic link), like every manifest row
-   (``m3t.corpora.base.media_path_problem``; the per-adapter row tests are in tests/corpora/test_readers.py).
+   (``m3t.corpora.listing.media_path_problem``; the per-adapter row tests are in tests/corpora/test_readers.py).
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("m3t", "flows", "dashboards")
+PACKAGES = ("m3t", "flows", "dashboards", "cli")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 # (file, call) -> why it may break the rule; a new unsafe load fails the scan until it is listed here with a reason.
@@ -176,7 +177,7 @@ def test_library_deserialises_only_safely():
 def test_restricted_unpicklers_exist_where_listed():
     """RESTRICTED_UNPICKLERS names real classes (a rename must not leave a stale exception behind)."""
     from m3t.body import model_files
-    from m3t.corpora.base import CorpusUnpickler
+    from m3t.corpora.annotation_files import CorpusUnpickler
 
     assert all(hasattr(model_files, name) for _, name in RESTRICTED_UNPICKLERS)
     assert issubclass(CorpusUnpickler, model_files.SafeModelUnpickler)
@@ -184,15 +185,16 @@ def test_restricted_unpicklers_exist_where_listed():
 
 # ----------------------------------------------------------------------------------------- 3. servers
 def test_services_bind_loopback_by_default(monkeypatch):
-    import flows.services as services
-    from flows.cli import main
+    import cli.services as services
+    from cli.main import main
+    from cli.processes import ServiceError
 
     assert services.ServicesConfig().host == "127.0.0.1"
     seen = []
 
     def fake_up(cfg):
         seen.append(cfg)
-        raise services.ServiceError("not started in this test")
+        raise ServiceError("not started in this test")
 
     monkeypatch.setattr(services, "up", fake_up)
     assert main(["up"]) == 1 and main(["serve"]) == 1
@@ -221,7 +223,7 @@ def test_health_checks_follow_only_http(monkeypatch, tmp_path):
     """services.json is a file on disk: a health URL it names must not make the CLI read local files."""
     import urllib.request
 
-    import flows.services as services
+    import cli.services as services
 
     opened = []
     def urlopen(request, timeout):
@@ -248,16 +250,17 @@ def test_soke_annotation_outside_the_root_is_never_read(tmp_path, monkeypatch):
     """Layout: tests/corpus_fixtures.py ``build_soke`` (SOKE's release, 2000ZRL/SOKE ``load_data.py``)."""
     import corpus_fixtures as fx
 
-    import m3t.corpora.fitted_pickles as fitted
-    from m3t.corpora.base import CorpusError, open_corpus
+    import m3t.corpora.soke_smplx as soke
+    from m3t.corpora.base import open_corpus
+    from m3t.corpora.listing import CorpusError
 
     root = tmp_path / "corpus"
     fx.build_soke(root)
     (tmp_path / "outside").mkdir()
     (root / "annotation.csv").rename(tmp_path / "outside" / "notes.csv")  # a valid CSV: reading it would list
     read = []
-    real = fitted.read_lines
-    monkeypatch.setattr(fitted, "read_lines", lambda path, hint: read.append(Path(path)) or real(path, hint))
+    real = soke.read_lines
+    monkeypatch.setattr(soke, "read_lines", lambda path, hint: read.append(Path(path)) or real(path, hint))
     for value in outside(tmp_path, root, "notes.csv"):
         with pytest.raises(CorpusError, match="outside the corpus root|is absolute|'..' component"):
             open_corpus("soke_smplx", root, annotation=value).listing()
@@ -268,7 +271,7 @@ def test_slt_files_outside_the_root_are_never_read(tmp_path, monkeypatch):
     """Layout: tests/corpus_fixtures.py ``build_slt`` (neccam/slt's gzip pickles, ``signjoey/dataset.py``)."""
     import corpus_fixtures as fx
 
-    import m3t.corpora.fitted_pickles as fitted
+    import m3t.corpora.slt_pickle as slt
     from m3t.corpora.base import open_corpus
 
     root = tmp_path / "corpus"
@@ -276,8 +279,8 @@ def test_slt_files_outside_the_root_are_never_read(tmp_path, monkeypatch):
     (tmp_path / "outside").mkdir()
     (root / files["dev"]).rename(tmp_path / "outside" / files["dev"])  # a valid file: reading it would list it
     read = []
-    real = fitted.read_slt_pickle
-    monkeypatch.setattr(fitted, "read_slt_pickle", lambda path: read.append(Path(path)) or real(path))
+    real = slt.read_slt_pickle
+    monkeypatch.setattr(slt, "read_slt_pickle", lambda path: read.append(Path(path)) or real(path))
     values = outside(tmp_path, root, files["dev"])
     listing = open_corpus("slt_pickle", root, files=tuple(values) + (files["train"],)).listing()
     assert all(p.resolve().is_relative_to(root.resolve()) for p in read) and read, read

@@ -14,7 +14,8 @@ from m3t.positional_encoding import sinusoid_table
 from m3t.sgsa.config import SGSAConfig, SGSATrainConfig
 from m3t.sgsa.data import Batch
 from m3t.sgsa.train import losses
-from m3t.sgsa.model import CounterStop, SGSADims, SGSAProduction, SkeletalGraphSelfAttention
+from m3t.sgsa.model import CounterStop, SGSADims, SGSAProduction
+from m3t.sgsa.skeletal_attention import SkeletalGraphSelfAttention
 
 S = 7  # two joints of 3 coordinates + the counter
 TINY = dict(encoder_layers=1, encoder_heads=2, encoder_width=16, encoder_ffn=32, decoder_heads=2, standard_layers=2,

@@ -23,7 +23,7 @@ from m3t.sgsa.table import adjacency_table, cross_table, layers_table, sweep_set
 from m3t.sgsa.train import losses, train_sgsa
 from m3t.shards.io import read_split
 from m3t.shards.skeletons import skeleton_clips
-from m3t.training import worker_split
+from m3t.training_jobs import worker_split
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -261,7 +261,7 @@ def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
     import yaml
     from prefect.testing.utilities import prefect_test_harness
 
-    from flows.cli import main as cli
+    from cli.main import main as cli
     from flows.sgsa import sgsa_flow
     from m3t.experiment import fetch_runs, to_dict
     from m3t.stages import shards_version

@@ -70,7 +70,8 @@ def test_token_shard_with_unparsable_metadata_names_the_file_and_key(tmp_path):
 
 @pytest.mark.parametrize("kind", ["body", "holistic"])
 def test_skeleton_clip_poses_the_fit_into_the_graph_and_normalises_it(body, kind):
-    from m3t.body.skeleton import denormalise, graph_for
+    from m3t.body.skeleton import graph_for
+    from m3t.body.skeleton_points import denormalise
     from m3t.shards.skeletons import SKELETON_STREAM, skeleton_clip
 
     graph = graph_for(kind)

@@ -275,7 +275,7 @@ def test_variants_trained_in_worker_processes_equal_one_process_on_their_threads
     """``slr_train.workers: 2`` trains the full and the face-less probe in two spawned processes of one thread
     each (this process has two): checkpoints, metrics.json and the per-epoch records are those of one process
     that trains the variants one after another on one thread, up to float rounding (:mod:`float_order`)."""
-    from m3t.training import worker_split
+    from m3t.training_jobs import worker_split
 
     runs = {}
     for workers, threads in ((1, 1), (2, 2)):

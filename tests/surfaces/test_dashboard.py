@@ -8,7 +8,7 @@ from pathlib import Path
 
 from dashboards.build import build_dashboard
 from dashboards.html import PAGES, markdown
-from m3t.claims import CLAIMS
+from m3t.claims.definitions import CLAIMS
 from m3t.config import load_params
 from m3t.experiment import fetch_runs
 
@@ -71,7 +71,7 @@ def test_a_tiny_pipeline_fills_the_pages(tiny_workspace, tmp_path):
 
 
 def test_the_sgsa_study_shows_its_verdicts_intervals_and_how_many_flip_between_seed_halves(tmp_path):
-    from dashboards.sections import sgsa_study
+    from dashboards.sections.claims import sgsa_study
 
     assert "m3t sgsa-study" in sgsa_study(tmp_path / "missing.json")
     summary = {"split": "test", "seeds": [0, 1, 2, 3], "comparisons": [
@@ -90,7 +90,7 @@ def test_the_sgsa_study_shows_its_verdicts_intervals_and_how_many_flip_between_s
 
 
 def test_the_repeatability_table_counts_the_digits_two_arithmetics_share(tmp_path):
-    from dashboards.sections import repeatability
+    from dashboards.sections.claims import repeatability
     from m3t.metrics.stats import agreeing_digits
 
     assert agreeing_digits(1.23456, 1.23457) == 5 and agreeing_digits(2.0, 3.0) == 0
@@ -106,7 +106,7 @@ def test_the_repeatability_table_counts_the_digits_two_arithmetics_share(tmp_pat
 
 
 def test_a_saved_study_shows_its_judged_claims_with_the_seed_halves_that_flip(tmp_path):
-    from dashboards.sections import saved_claims
+    from dashboards.sections.claims import saved_claims
 
     row = {"key": "k", "claim": "FSQ uses more codes", "source": "M3T Tab. 3", "paper": "67 -> 96", "metric": "util",
            "a": "VQ", "b": "FSQ", "mean_a": 97.4, "std_a": 1.6, "mean_b": 93.6, "std_b": 2.4, "compared": "B - A",

@@ -23,7 +23,7 @@ def free_port() -> int:
 
 @pytest.fixture(scope="module")
 def served(tiny_workspace, tmp_path_factory):
-    from flows.services import ServicesConfig, down, up
+    from cli.services import ServicesConfig, down, up
 
     run_dir = tmp_path_factory.mktemp("services")
     cfg = ServicesConfig(run_dir=run_dir, params=tiny_workspace.params_file, prefect_port=free_port(),

@@ -19,9 +19,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flows.cli import main
-from flows.services import (Running, Service, ServiceError, ServicesConfig, down, is_running, plan, port_free,
-                            processes, read_state, start, stop, up)
+from cli.main import main
+from cli.processes import Running, Service, ServiceError, is_running, processes, start, stop
+from cli.services import ServicesConfig, down, plan, port_free, read_state, up
 
 ROOT = Path(__file__).resolve().parents[2]
 PROC = Path("/proc/self").is_dir()
@@ -93,7 +93,7 @@ def post(url: str, body: dict) -> list:
 def cli(*args: str) -> subprocess.CompletedProcess:
     """``m3t ...`` in its own process, as a user runs it: what ``up`` starts must outlive it."""
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_HOME", "PREFECT_API_URL")}
-    return subprocess.run([sys.executable, "-m", "flows.cli", *args], cwd=ROOT, env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=300)
 
 
@@ -248,7 +248,7 @@ def test_a_service_that_dies_rolls_back_what_up_started(tmp_path, monkeypatch):
     web = Service("prefect", (sys.executable, "-m", "http.server", "--bind", "127.0.0.1", str(port)),
                   dict(os.environ), f"http://127.0.0.1:{port}", f"http://127.0.0.1:{port}/", port, "--prefect-port")
     broken = sleeper("mlflow", "import sys; print('no such store: sqlite:///nowhere.db'); sys.exit(3)")
-    monkeypatch.setattr("flows.services.plan", lambda cfg: [web, broken])
+    monkeypatch.setattr("cli.services.plan", lambda cfg: [web, broken])
     cfg = ServicesConfig(run_dir=tmp_path / "run", start_timeout_s=30)
     with pytest.raises(ServiceError, match=r"mlflow exited \(code 3\)(.|\n)*no such store"):
         up(cfg, say=lambda _: None)

@@ -16,6 +16,7 @@ from m3t.body.rotations import mirror_rotations
 from m3t.corpora.clip import Clip
 from m3t.experiment import RunRecord
 from m3t.metrics.codebook import codebook_stats, token_counts
+from m3t.optimizer import lr_factor
 from m3t.shards.schema import ShardFormatError
 from m3t.shards.tokens import TokenClip, TokenInfo, read_token_shard, write_token_shard
 from m3t.tokenizers.ablation import ablation_table, dvc_command, sweep_settings
@@ -34,7 +35,6 @@ from m3t.tokenizers.evaluate import encode_clip, reconstruct_clip
 from m3t.tokenizers.fsq import FSQ
 from m3t.tokenizers.vae import MotionTokenizer, count_parameters
 from m3t.tokenizers.vq import EMAVQ, PlainVQ
-from m3t.training import lr_factor
 
 PAPER_LEVELS = [(5, 5, 4), (6, 6, 5), (6, 6, 6)]
 

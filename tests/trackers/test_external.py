@@ -13,11 +13,16 @@ from fusion_fixtures import T, rot_err_deg, write_nlf, write_pixel3dmm, write_wi
 from smplfx_fixtures import front_camera_fx
 
 from m3t.body.smplfx_build import SMPLX_JOINTS
-from m3t.fitting.fit import FittingConfig
 from m3t.fitting.config import FusionConfig
-from m3t.fitting.fusion import HELD, INTERPOLATED, TrackerStream, fuse, fuse_trackers, refine
-from m3t.trackers.external import TrackerFileError, load_tracker_file, read_nlf, read_pixel3dmm, read_wilor
+from m3t.fitting.fit import FittingConfig
+from m3t.fitting.fusion import refine
+from m3t.fitting.stream_fusion import HELD, INTERPOLATED, TrackerStream, fuse
+from m3t.fitting.tracker_streams import fuse_trackers
+from m3t.trackers.nlf_reader import read_nlf
+from m3t.trackers.pixel3dmm_reader import read_pixel3dmm
 from m3t.trackers.simulated import SimulatedTrackerConfig, simulate_track
+from m3t.trackers.tracker_files import TrackerFileError, load_tracker_file
+from m3t.trackers.wilor_reader import read_wilor
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".pt"])

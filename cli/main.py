@@ -23,18 +23,21 @@
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
+
+This module parses the command line and holds the workspace and service commands; the experiment commands (sweeps,
+tables, claims, studies) are in :mod:`cli.experiments`.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import yaml
 
+from cli import experiments
 from m3t.atomic import write_text
 from m3t.experiment import disable_telemetry
 
@@ -62,7 +65,8 @@ def _cmd_fit_corpus(args: argparse.Namespace) -> int:
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     """``m3t up`` in the foreground: the same services, stopped together on Ctrl-C."""
-    from flows.services import ServiceError, ServicesConfig, down, up
+    from cli.processes import ServiceError
+    from cli.services import ServicesConfig, down, up
 
     cfg = ServicesConfig(run_dir=Path(args.run_dir), params=Path(args.params), prefect_port=args.port,
                          mlflow_port=args.mlflow_port)
@@ -93,7 +97,8 @@ def _print_status(healths: list) -> None:
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
-    from flows.services import ServiceError, ServicesConfig, status, up
+    from cli.processes import ServiceError
+    from cli.services import ServicesConfig, status, up
 
     cfg = ServicesConfig(run_dir=Path(args.run_dir), params=Path(args.params), host=args.host,
                          prefect_port=args.prefect_port, mlflow_port=args.mlflow_port, serve=not args.no_serve,
@@ -125,7 +130,8 @@ def _mlflow_link(params: str, base_url: str) -> str:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
-    from flows.services import ServiceError, status
+    from cli.processes import ServiceError
+    from cli.services import status
 
     try:
         healths = status(Path(args.run_dir))
@@ -140,7 +146,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 
 def _cmd_down(args: argparse.Namespace) -> int:
-    from flows.services import ServiceError, down
+    from cli.processes import ServiceError
+    from cli.services import down
 
     try:
         stopped = down(Path(args.run_dir), timeout_s=args.timeout)
@@ -149,52 +156,6 @@ def _cmd_down(args: argparse.Namespace) -> int:
         return 1
     if not stopped:
         print(f"nothing was running (run directory {args.run_dir})")
-    return 0
-
-
-def _cmd_ablate(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import absolute_uri
-    from m3t.tokenizers.ablation import CPU_WIDTHS, dvc_command, sweep_settings
-
-    params = load_params(args.params)
-    settings = sweep_settings(params.tokenizer.width, widths=args.widths or CPU_WIDTHS, full=args.full)
-    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
-    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
-    for i, setting in enumerate(settings, 1):
-        command = dvc_command(setting)
-        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
-            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
-    return 0
-
-
-def _cmd_tokenizer_table(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-    from m3t.tokenizers.ablation import ablation_table
-
-    print(ablation_table(fetch_runs(load_params(args.params).experiment, stage="train-tokenizers")))
-    return 0
-
-
-def _cmd_smlm_table(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-    from m3t.smlm.table import production_table
-
-    print(production_table(fetch_runs(load_params(args.params).experiment, stage="evaluate-smlm")))
-    return 0
-
-
-def _cmd_bt_table(args: argparse.Namespace) -> int:
-    from m3t.backtranslation.table import backtranslation_table
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-
-    experiment = load_params(args.params).experiment
-    print(backtranslation_table(fetch_runs(experiment, stage="evaluate-backtranslation"),
-                                fetch_runs(experiment, stage="evaluate-smlm")))
     return 0
 
 
@@ -213,82 +174,6 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     index = build_dashboard(load_params(args.params), args.out)
     print(f"wrote {index}; open it in a browser")
     return 0
-
-
-def _cmd_slr_table(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-    from m3t.slr.table import recognition_table
-
-    print(recognition_table(fetch_runs(load_params(args.params).experiment, stage="evaluate-slr")))
-    return 0
-
-
-def _cmd_sgsa_sweep(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import absolute_uri
-    from m3t.sgsa.table import sweep_settings
-    from m3t.tokenizers.ablation import dvc_command
-
-    params = load_params(args.params)
-    settings = sweep_settings(args.table, args.seeds, layers=args.layers)
-    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
-    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
-    for i, setting in enumerate(settings, 1):
-        command = dvc_command(setting, stage="evaluate-sgsa")
-        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
-            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
-    return 0 if args.dry_run else _cmd_sgsa_table(args)
-
-
-def _cmd_sgsa_table(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-    from m3t.sgsa.table import adjacency_table, cross_table, layers_table
-
-    records = fetch_runs(load_params(args.params).experiment, stage="evaluate-sgsa")
-    tables = {"1": layers_table, "2": adjacency_table, "3": cross_table}
-    chosen = [args.table] if getattr(args, "table", "all") != "all" else list(tables)
-    print("\n\n".join(tables[t](records) for t in chosen))
-    return 0
-
-
-def _cmd_claims(args: argparse.Namespace) -> int:
-    from m3t.claims import claims_markdown, write_claims
-    from m3t.config import load_params
-    from m3t.experiment import fetch_runs
-
-    params = load_params(args.params)
-    out = args.out or params.data.metrics_dir
-    rows = write_claims(fetch_runs(params.experiment), out, args.min_seeds)
-    print(claims_markdown(rows, args.min_seeds))
-    print(f"written: {out}/claims.json, {out}/claims.md")
-    return 0
-
-
-def _cmd_sgsa_study(args: argparse.Namespace) -> int:
-    from m3t.body.factory import load_body_model
-    from m3t.config import load_params
-    from m3t.sgsa.study import run_study
-
-    params = load_params(args.params)
-    summary = run_study(params.sgsa, params.sgsa_train, load_body_model(params.body), params.data, args.seeds,
-                        args.out, args.split, params.backtranslation)
-    print((Path(args.out) / "claims.md").read_text())
-    return 0 if summary["comparisons"] else 1
-
-
-def _cmd_study(args: argparse.Namespace) -> int:
-    from flows.study import StudyError, study
-    from m3t.config import ConfigError
-
-    try:
-        return study(args.params, args.preset, args.seeds, args.root, dry_run=args.dry_run, only=args.only or (),
-                     claims=not args.no_claims)
-    except (ConfigError, StudyError) as err:
-        print(f"m3t study: {err}", file=sys.stderr)
-        return 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -330,13 +215,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--full", action="store_true", help="the whole quantizer x batch x width grid")
     p.add_argument("--widths", type=int, nargs="*", help="widths to sweep (default 32 64 128; paper: 512 1024 2048)")
     p.add_argument("--dry-run", action="store_true")
-    p.set_defaults(func=_cmd_ablate)
+    p.set_defaults(func=experiments.cmd_ablate)
     p = sub.add_parser("tokenizer-table", help="print the Tab. 3-style tokenizer comparison from MLflow")
-    p.set_defaults(func=_cmd_tokenizer_table)
+    p.set_defaults(func=experiments.cmd_tokenizer_table)
     p = sub.add_parser("smlm-table", help="print the Tab. 1-style SMLM comparison from MLflow")
-    p.set_defaults(func=_cmd_smlm_table)
+    p.set_defaults(func=experiments.cmd_smlm_table)
     p = sub.add_parser("bt-table", help="print Tab. 2 (back-translation, SL-T definition) from MLflow")
-    p.set_defaults(func=_cmd_bt_table)
+    p.set_defaults(func=experiments.cmd_bt_table)
     p = sub.add_parser("dashboard", help="build the static dashboard over the MLflow store and the DVC metrics")
     p.add_argument("--out", default=None, help="folder of the site (default: experiment.dashboard_dir)")
     p.set_defaults(func=_cmd_dashboard)
@@ -344,23 +229,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="documentation folder (default: docs)")
     p.set_defaults(func=_cmd_docs_results)
     p = sub.add_parser("slr-table", help="print Tab. 4 (recognition probe with intervals) from MLflow")
-    p.set_defaults(func=_cmd_slr_table)
+    p.set_defaults(func=experiments.cmd_slr_table)
     p = sub.add_parser("sgsa-sweep", help="SGSA Tab. 1 (L = 0..5) or Tab. 2 (N = inf, 1, 2, 3, 5) by dvc exp, then "
                                           "the table")
     p.add_argument("table", choices=("1", "2"))
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="sgsa_train.seed values (one run each)")
     p.add_argument("--layers", type=int, default=None, help="L of the Tab. 2 sweep (default: params' sgsa layers)")
     p.add_argument("--dry-run", action="store_true")
-    p.set_defaults(func=_cmd_sgsa_sweep)
+    p.set_defaults(func=experiments.cmd_sgsa_sweep)
     p = sub.add_parser("sgsa-study", help="the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, with intervals")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--split", default="test")
     p.add_argument("--out", default="metrics/sgsa-claims")
-    p.set_defaults(func=_cmd_sgsa_study)
+    p.set_defaults(func=experiments.cmd_sgsa_study)
     p = sub.add_parser("claims", help="judge the papers' claims on the MLflow runs: claims.json / claims.md")
     p.add_argument("--min-seeds", type=int, default=3, help="fewer seeds per variant: inconclusive")
     p.add_argument("--out", default=None, help="folder of claims.json / claims.md (default: data.metrics_dir)")
-    p.set_defaults(func=_cmd_claims)
+    p.set_defaults(func=experiments.cmd_claims)
     p = sub.add_parser("study", help="run every variant and seed the claims need (resumable), then judge the claims")
     p.add_argument("--preset", default="study")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4],
@@ -370,10 +255,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", nargs="+", default=None, metavar="STAGE",
                    help="only these steps: stage names, variants (slr-s0) or variant.stage")
     p.add_argument("--no-claims", action="store_true", help="do not judge the claims at the end")
-    p.set_defaults(func=_cmd_study)
+    p.set_defaults(func=experiments.cmd_study)
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
-    p.set_defaults(func=_cmd_sgsa_table)
+    p.set_defaults(func=experiments.cmd_sgsa_table)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -1,8 +1,9 @@
-"""Build the MediaPipe Holistic -> Anny landmark correspondence (``data/anny_mediapipe_holistic.json``).
+"""Build the MediaPipe Holistic -> Anny landmark correspondence (``m3t/body/data/anny_mediapipe_holistic.json``).
 
-Run::
+A one-off build script, not part of the library: the library only reads its output
+(:func:`m3t.body.anny_body.load_correspondence`). Run from the repository root::
 
-    python -m m3t.body.build_correspondence --mediapipe-wheel-dir DIR \
+    python tools/build_correspondence.py --mediapipe-wheel-dir DIR \
         --out m3t/body/data/anny_mediapipe_holistic.json
 
 The output lists the 543 Holistic landmarks in MediaPipe's order -- 33 pose, 21 left-hand, 21 right-hand,
@@ -84,6 +85,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from m3t.body.anny_body import DATA_DIR
 from m3t.body.landmarks import HAND_LANDMARKS, POSE_LANDMARKS
 from m3t.body.similarity import SimilarityTransform, similarity_transform
 
@@ -483,7 +485,7 @@ def pose_entries(rest: AnnyRest, face_vertex: list[int | None]) -> tuple[list[di
 
 # ---------------------------------------------------------------------------------------------- main
 HOW_MADE = (
-    "Built by m3t/body/build_correspondence.py on Anny's rest pose (default identity). Hands: wrist and "
+    "Built by tools/build_correspondence.py on Anny's rest pose (default identity). Hands: wrist and "
     "finger joints are bone heads (finger{1..5}-{1..3}); fingertips are the vertex farthest along the distal "
     "phalanx. Pose: joints are bone heads (upperarm01, lowerarm01, wrist, upperleg01, lowerleg01, foot; "
     "hand knuckles finger5-1/finger2-1/finger1-2); nose/eyes/ears/foot index snap Anny's COCO keypoint "
@@ -546,7 +548,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mediapipe-wheel-dir", type=Path, help="folder with the mediapipe wheel (zipped or unpacked)")
     parser.add_argument("--canonical-face-model", type=Path, help="canonical_face_model.obj, if not in the wheel")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "data" / "anny_mediapipe_holistic.json")
+    parser.add_argument("--out", type=Path, default=DATA_DIR / "anny_mediapipe_holistic.json")
     parser.add_argument("--max-residual-mm", type=float, default=8.0)
     args = parser.parse_args(argv)
 
