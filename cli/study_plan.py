@@ -7,14 +7,22 @@ every output folder redirected under ``root``); the shared corpus, shards, token
 under ``<root>/variants/<variant>/``, whose models folder holds relative links to the shared models it reads. The
 caches (``*.cache_dir``) stay where params.yaml puts them: they are content-addressed and shared.
 
+What each step reads is not declared here: :func:`stage_graph` derives it from ``dvc.yaml`` (a stage reads another
+when one of its deps is, or lies inside, one of the other's outputs), and each step runs its stage's ``cmd`` with
+``--params`` of its variant. A variant reads a stage it does not run from the shared steps, or from the variant it
+takes its generated motion from. Only the corpus fits are the study's own: it fits every corpus it trains or
+probes on, where ``dvc.yaml`` has one fit stage per corpus of the embedded default.
+
 Order matters to the claims: :func:`m3t.claims.collectors.sgsa_systems` reads the setting of the newest evaluate-sgsa run, so
 every SGSA N = inf step comes before the default-adjacency ones, and those are evaluated again whenever an N = inf
 evaluation ran (their ``after``).
 """
 from __future__ import annotations
 
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import yaml
@@ -24,6 +32,8 @@ from m3t.config import Params, merge, params_from_dict, preset_overlay, read_yam
 from m3t.experiment import to_dict
 
 SHARED = "shared"
+DVC_YAML = Path(__file__).resolve().parents[1] / "dvc.yaml"
+FIT = "fit-corpus"  # dvc.yaml's fit stage stands for every corpus fit of the study
 # (quantizer, batch size) of M3T Tab. 3's claims: FSQ against the three VQs, and FSQ at batch 128
 TOKENIZER_SETTINGS = (("fsq", 16), ("vq", 16), ("vq_ema", 16), ("vq_plain", 16), ("fsq", 128))
 
@@ -49,6 +59,31 @@ class Step:
 
 def _argv(module: str, params: Path, *extra: str) -> tuple[str, ...]:
     return ("python", "-m", f"m3t.stages.{module}", "--params", str(params), *extra)
+
+
+@dataclass(frozen=True)
+class StageGraph:
+    reads: dict[str, tuple[str, ...]]  # stage -> the stages whose outputs it reads, in dvc.yaml order
+    cmd: dict[str, tuple[str, ...]]  # stage -> its command line
+
+
+def _paths(entries: Sequence) -> list[str]:
+    return [str(e if isinstance(e, str) else next(iter(e))) for e in entries or ()]
+
+
+@cache
+def stage_graph(path: Path = DVC_YAML) -> StageGraph:
+    """What each ``dvc.yaml`` stage reads: a stage reads another when one of its deps equals, lies inside or holds
+    one of the other's outputs (``outs``, ``metrics``, ``plots``)."""
+    stages = yaml.safe_load(path.read_text(encoding="utf-8"))["stages"]
+    outs = {n: _paths([*s.get("outs", ()), *s.get("metrics", ()), *s.get("plots", ())]) for n, s in stages.items()}
+
+    def overlaps(dep: str, out: str) -> bool:
+        return dep == out or dep.startswith(out.rstrip("/") + "/") or out.startswith(dep.rstrip("/") + "/")
+
+    reads = {name: tuple(other for other in stages if other != name and any(
+        overlaps(d, o) for d in _paths(spec.get("deps")) for o in outs[other])) for name, spec in stages.items()}
+    return StageGraph(reads, {n: tuple(shlex.split(s["cmd"])) for n, s in stages.items()})
 
 
 def _folders(root: Path, variant: str) -> dict:
@@ -97,75 +132,84 @@ class _Planner:
         self.path, self.shared = self.writer.write(SHARED, {"tokenizer": {"quantizer": "fsq"}, "tokenizer_train": {
             "batch_size": 16, "seed": self.shared_seed}})
         self.fits: tuple[str, ...] = ()
-        self.tok = f"{SHARED}.train-tokenizers"
+        self.graph = stage_graph()
 
     def add_shared(self) -> None:
         p, s = self.path, f"{SHARED}."
         corpora = list(dict.fromkeys((*self.base.data.train_corpora, self.base.slr.corpus)))
         if "synthetic" in corpora:
-            self.steps.append(Step(SHARED, "generate-corpus", p, _argv("generate_corpus", p)))
+            self.steps.append(self.step(SHARED, "generate-corpus", p))
         for corpus in corpora:
             stage = "fit-corpus" if corpus == "synthetic" else f"fit-corpus-{corpus}"
             deps = (s + "generate-corpus",) if corpus == "synthetic" else ()
             self.steps.append(Step(SHARED, stage, p, _argv("fit_corpus", p, "--corpus", corpus), deps))
-        fits = self.fits = tuple(st.name for st in self.steps if st.stage.startswith("fit-corpus"))
-        self.steps += [Step(SHARED, "train-tokenizers", p, _argv("train_tokenizers", p), fits),
-                       Step(SHARED, "tokenize", p, _argv("tokenize", p), (self.tok, *fits)),
-                       Step(SHARED, "train-backtranslation", p, _argv("train_backtranslation", p), fits),
-                       Step(SHARED, "evaluate-backtranslation", p, _argv("evaluate_backtranslation", p),
-                            (s + "train-backtranslation",)),
-                       Step(SHARED, "train-backtranslation-skeleton", p, _argv("train_backtranslation_skeleton", p),
-                            fits)]
+        self.fits = tuple(st.name for st in self.steps if st.stage.startswith("fit-corpus"))
+        for stage in ("train-tokenizers", "tokenize", "train-backtranslation", "evaluate-backtranslation",
+                      "train-backtranslation-skeleton"):
+            self.steps.append(self.step(SHARED, stage, p))
 
-    def add(self, name: str, settings: dict, stages: Sequence[tuple[str, tuple[str, ...]]],
-            shared_dirs: Sequence[str] = (), generated_from: str | None = None,
-            after: Mapping[str, tuple[str, ...]] | None = None) -> None:
+    def step(self, variant: str, stage: str, path: Path, links: tuple[tuple[Path, Path], ...] = (),
+             after: tuple[str, ...] = (), provider: Mapping[str, str] | None = None) -> Step:
+        """``variant``'s step of ``stage``: it reads each stage ``dvc.yaml`` says it reads from the variant's own
+        step when planned, else from ``provider[stage]`` or the shared steps (a stage nobody runs is not read)."""
+        if stage not in self.graph.cmd:
+            raise StudyError(f"stage {stage} is not in {DVC_YAML.name}; the study runs only dvc.yaml's stages")
+        planned = {st.name for st in self.steps}
+        deps: list[str] = []
+        for read in self.graph.reads[stage]:
+            if read == FIT:
+                deps.extend(self.fits)
+                continue
+            name = next((f"{v}.{read}" for v in (variant, (provider or {}).get(read, SHARED))
+                         if f"{v}.{read}" in planned), None)
+            if name is not None:
+                deps.append(name)
+        argv = (*self.graph.cmd[stage], "--params", str(path))
+        return Step(variant, stage, path, argv, tuple(dict.fromkeys(deps)), links, after)
+
+    def add(self, name: str, settings: dict, stages: Sequence[str], shared_dirs: Sequence[str] = (),
+            generated_from: str | None = None, after: Mapping[str, tuple[str, ...]] | None = None) -> None:
         """A variant's steps; its models folder links ``shared_dirs`` (DataConfig properties) of the shared models,
-        its generated folder is that of the variant ``generated_from``."""
+        its generated folder is that of the variant ``generated_from`` (whose generate-smlm it reads)."""
         path, params = self.writer.write(name, settings)
         links = tuple((getattr(params.data, d), getattr(self.shared.data, d)) for d in shared_dirs)
+        provider = {}
         if generated_from is not None:
             source = _folders(self.root, generated_from)["data"]["generated_dir"]
             links += ((Path(params.data.generated_dir), Path(source)),)
-        self.steps.extend(Step(name, stage, path, _argv(stage.replace("-", "_"), path), deps, links,
-                               (after or {}).get(stage, ())) for stage, deps in stages)
+            provider["generate-smlm"] = generated_from
+        for stage in stages:
+            self.steps.append(self.step(name, stage, path, links, (after or {}).get(stage, ()), provider))
 
     def add_tokenizers(self, seed: int) -> None:
         for quantizer, batch in TOKENIZER_SETTINGS:
             if (quantizer, batch, seed) != ("fsq", 16, self.shared_seed):  # that one is the shared run
                 self.add(f"tokenizer-{quantizer}-b{batch}-s{seed}", {"tokenizer": {"quantizer": quantizer},
-                         "tokenizer_train": {"batch_size": batch, "seed": seed}}, [("train-tokenizers", self.fits)])
+                         "tokenizer_train": {"batch_size": batch, "seed": seed}}, ["train-tokenizers"])
 
     def add_smlm(self, seed: int) -> None:
-        tokens = (f"{SHARED}.tokenize", self.tok)
         # the objective's ablation at equal epochs (shared steps) and at equal production updates (added steps)
         for objective, steps, kind in ((True, "shared", "translation"), (False, "shared", "production"),
                                        (True, "added", "translation-added")):
             name = f"smlm-{kind}-s{seed}"
             self.add(name, {"smlm_train": {"translation_objective": objective, "translation_steps": steps,
                                            "seed": seed}},
-                     [("train-smlm", tokens), ("generate-smlm", (f"{name}.train-smlm", *tokens)),
-                      ("evaluate-smlm", (f"{name}.generate-smlm", f"{SHARED}.train-backtranslation"))],
-                     ("tokenizers_dir", "backtranslation_dir"))
+                     ["train-smlm", "generate-smlm", "evaluate-smlm"], ("tokenizers_dir", "backtranslation_dir"))
 
     def add_slr(self, seed: int) -> None:
-        self.add(f"slr-s{seed}", {"slr_train": {"seed": seed}},
-                 [("train-slr", (*self.fits, self.tok)), ("evaluate-slr", (f"slr-s{seed}.train-slr", self.tok))],
-                 ("tokenizers_dir",))
+        self.add(f"slr-s{seed}", {"slr_train": {"seed": seed}}, ["train-slr", "evaluate-slr"], ("tokenizers_dir",))
 
     def add_sgsa(self, seed: int, infinite: bool) -> None:
         """N = inf (the SGSA system alone), or the configured N beside PT, judged with the same seed's SMLM."""
-        judge, dirs = (f"{SHARED}.train-backtranslation-skeleton", self.tok), ("tokenizers_dir", "skeleton_judge_dir")
+        dirs, stages = ("tokenizers_dir", "skeleton_judge_dir"), ["train-sgsa", "evaluate-sgsa"]
         if infinite:
-            name = f"sgsa-ninf-s{seed}"
-            self.add(name, {"sgsa": {"temporal_adjacency": 0}, "sgsa_train": {"systems": ["sgsa"], "seed": seed}},
-                     [("train-sgsa", self.fits), ("evaluate-sgsa", (f"{name}.train-sgsa", *judge))], dirs)
+            self.add(f"sgsa-ninf-s{seed}", {"sgsa": {"temporal_adjacency": 0},
+                                            "sgsa_train": {"systems": ["sgsa"], "seed": seed}}, stages, dirs)
             return
         name, smlm = f"sgsa-n{self.base.sgsa.temporal_adjacency}-s{seed}", f"smlm-translation-s{seed}"
         inf = tuple(st.name for st in self.steps if st.variant.startswith("sgsa-ninf-") and st.stage == "evaluate-sgsa")
-        evaluate = ("evaluate-sgsa", (f"{name}.train-sgsa", *judge, f"{smlm}.generate-smlm"))
-        self.add(name, {"sgsa_train": {"systems": ["pt", "sgsa"], "seed": seed}}, [("train-sgsa", self.fits), evaluate],
-                 dirs, generated_from=smlm, after={"evaluate-sgsa": inf})
+        self.add(name, {"sgsa_train": {"systems": ["pt", "sgsa"], "seed": seed}}, stages, dirs, generated_from=smlm,
+                 after={"evaluate-sgsa": inf})
 
 
 def plan(params_path: str | Path, preset: str, seeds: Sequence[int], root: str | Path) -> list[Step]:

@@ -14,7 +14,7 @@ import yaml
 
 from cli.main import main as cli_main
 from cli.study import run, study
-from cli.study_plan import StudyError, plan, select
+from cli.study_plan import StudyError, plan, select, stage_graph
 from m3t.config import load_params
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -199,3 +199,32 @@ def test_on_real_corpora_the_study_fits_them_and_generates_nothing(params, tmp_p
     written = load_params(fit.params)
     assert written.corpora["phoenix14t"].root == str(tmp_path / "raw" / "phoenix14t")  # the data is read in place
     assert _under(written.data.shards_root, tmp_path / "study") and written.experiment.experiment == "m3t-study"
+
+
+def test_stage_graph_reads_outputs_from_dvc_yaml(tmp_path):
+    """A stage reads another when a dep equals, lies inside, or holds one of the other's outs / metrics."""
+    path = tmp_path / "dvc.yaml"
+    path.write_text(yaml.safe_dump({"stages": {
+        "make": {"cmd": "python -m m3t.stages.make", "outs": ["data/corpus"], "metrics": [{"data/m.json": {}}]},
+        "fit": {"cmd": "python -m m3t.stages.fit --corpus x", "deps": ["data/corpus/x", "m3t/fit.py"],
+                "outs": ["data/shards/x/train.parquet"]},
+        "train": {"cmd": "python -m m3t.stages.train", "deps": ["data/shards", "data/m.json"]},
+        "other": {"cmd": "python -m m3t.stages.other", "deps": ["data/corpus2"]}}}, sort_keys=False))
+    graph = stage_graph(path)
+    assert graph.reads == {"make": (), "fit": ("make",), "train": ("make", "fit"), "other": ()}
+    assert graph.cmd["fit"] == ("python", "-m", "m3t.stages.fit", "--corpus", "x")
+
+
+def test_each_step_reads_what_dvc_yaml_says_from_the_variant_that_makes_it(params, tmp_path):
+    steps = {s.name: s for s in plan(params, "tiny", [0], tmp_path / "study")}
+    graph = stage_graph()
+    assert set(graph.reads["evaluate-smlm"]) >= {"generate-smlm", "train-backtranslation"}
+    evaluate = steps["smlm-translation-s0.evaluate-smlm"]
+    assert {"smlm-translation-s0.generate-smlm", "shared.train-backtranslation"} <= set(evaluate.deps)
+    assert not [d for d in evaluate.deps if d.startswith("smlm-production")]
+    # the default-adjacency SGSA judges the same seed's SMLM motion, which it links; N = inf reads no SMLM
+    assert "smlm-translation-s0.generate-smlm" in steps["sgsa-n1-s0.evaluate-sgsa"].deps
+    assert not [d for d in steps["sgsa-ninf-s0.evaluate-sgsa"].deps if "smlm" in d]
+    for step in steps.values():  # every step runs its dvc.yaml command with its variant's params
+        if not step.stage.startswith("fit-corpus"):
+            assert step.argv == (*graph.cmd[step.stage], "--params", str(step.params))
