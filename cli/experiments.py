@@ -1,31 +1,40 @@
-"""The ``m3t`` commands of the papers' experiments: the sweeps run by ``dvc exp`` (``ablate-tokenizers``,
-``sgsa-sweep``), the tables printed from the MLflow runs, the claims judged on them, and the seeded studies
-(``sgsa-study``, ``study``). Each takes the parsed arguments of :func:`cli.main.main` and returns the exit code.
+"""The ``m3t`` commands of the papers' experiments: the sweeps (``ablate-tokenizers``, ``sgsa-sweep``) and the
+claims study (``study``), each a list of DVC experiments run by :mod:`cli.variants`; the tables printed from the
+MLflow runs and the claims judged on them. Each takes the parsed arguments of :func:`cli.main.main` and returns
+the exit code.
 """
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 
-def cmd_ablate(args: argparse.Namespace) -> int:
+def _sweep(args: argparse.Namespace, variants: list) -> int:
+    """Run ``variants`` as DVC experiments in the workspace of ``--params`` (:mod:`cli.variants`)."""
+    from cli.variants import VariantError, run_variants, tracking_env
     from m3t.config import load_params
-    from m3t.experiment import absolute_uri
-    from m3t.tokenizers.ablation import CPU_WIDTHS, dvc_command, sweep_settings
 
     params = load_params(args.params)
-    settings = sweep_settings(params.tokenizer.width, widths=args.widths or CPU_WIDTHS, full=args.full)
-    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
-    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
-    for i, setting in enumerate(settings, 1):
-        command = dvc_command(setting)
-        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
-            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
-    return 0
+    workspace = Path(args.params).resolve().parent
+    env = {} if args.dry_run else tracking_env(params.experiment, workspace)
+    try:
+        summary = run_variants(variants, workspace, workspace / ".m3t" / "sweeps", env=env, dry_run=args.dry_run)
+    except VariantError as err:
+        print(f"m3t: {err}", file=sys.stderr)
+        return 1
+    return 0 if summary.ok else 1
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from cli.variants import Variant
+    from m3t.config import load_params
+    from m3t.tokenizers.ablation import CPU_WIDTHS, sweep_settings
+
+    settings = sweep_settings(load_params(args.params).tokenizer.width, widths=args.widths or CPU_WIDTHS,
+                              full=args.full)
+    return _sweep(args, [Variant(f"tokenizer-{s['tokenizer.quantizer']}-b{s['tokenizer_train.batch_size']}"
+                                 f"-w{s['tokenizer.width']}", s, ("train-tokenizers",)) for s in settings])
 
 
 def cmd_tokenizer_table(args: argparse.Namespace) -> int:
@@ -67,21 +76,14 @@ def cmd_slr_table(args: argparse.Namespace) -> int:
 
 
 def cmd_sgsa_sweep(args: argparse.Namespace) -> int:
-    from m3t.config import load_params
-    from m3t.experiment import absolute_uri
+    from cli.variants import Variant
     from m3t.sgsa.table import sweep_settings
-    from m3t.tokenizers.ablation import dvc_command
 
-    params = load_params(args.params)
-    settings = sweep_settings(args.table, args.seeds, layers=args.layers)
-    # `--temp` runs in a copy of the workspace: send its MLflow runs to this workspace's store
-    env = dict(os.environ, MLFLOW_TRACKING_URI=absolute_uri(params.experiment.tracking_uri, Path.cwd()))
-    for i, setting in enumerate(settings, 1):
-        command = dvc_command(setting, stage="evaluate-sgsa")
-        print(f"[{i}/{len(settings)}] {' '.join(command)}", flush=True)
-        if not args.dry_run and subprocess.call(command, env=env) != 0:  # noqa: S603 - argv list, no shell
-            print(f"setting {setting} failed; the sweep goes on", file=sys.stderr)
-    return 0 if args.dry_run else cmd_sgsa_table(args)
+    variants = [Variant(f"sgsa-l{s.get('sgsa.decoder_layers', 'cfg')}-n{s['sgsa.temporal_adjacency']}"
+                        f"-s{s['sgsa_train.seed']}", s, ("evaluate-sgsa",))
+                for s in sweep_settings(args.table, args.seeds, layers=args.layers)]
+    code = _sweep(args, variants)
+    return code if args.dry_run else max(code, cmd_sgsa_table(args))
 
 
 def cmd_sgsa_table(args: argparse.Namespace) -> int:
@@ -109,26 +111,14 @@ def cmd_claims(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_sgsa_study(args: argparse.Namespace) -> int:
-    from m3t.body.factory import load_body_model
-    from m3t.config import load_params
-    from m3t.sgsa.study import run_study
-
-    params = load_params(args.params)
-    summary = run_study(params.sgsa, params.sgsa_train, load_body_model(params.body), params.data, args.seeds,
-                        args.out, args.split, params.backtranslation)
-    print((Path(args.out) / "claims.md").read_text())
-    return 0 if summary["comparisons"] else 1
-
-
 def cmd_study(args: argparse.Namespace) -> int:
     from cli.study import study
-    from cli.study_plan import StudyError
+    from cli.variants import VariantError
     from m3t.config import ConfigError
 
     try:
-        return study(args.params, args.preset, args.seeds, args.root, dry_run=args.dry_run, only=args.only or (),
-                     claims=not args.no_claims)
-    except (ConfigError, StudyError) as err:
+        return study(args.params, args.preset, args.seeds, args.out, dry_run=args.dry_run, only=args.only or (),
+                     claims=not args.no_claims, settings=args.settings)
+    except (ConfigError, VariantError) as err:  # StudyError is one
         print(f"m3t study: {err}", file=sys.stderr)
         return 1

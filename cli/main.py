@@ -15,17 +15,17 @@
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
     m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
     m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
-    m3t sgsa-study [--seeds 0 1 2 3 4]    the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, paired intervals
     m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
     m3t claims [--min-seeds 3]            the papers' claims on the runs: paper vs ours, interval, verdict, run ids
-    m3t study [--preset study] [--seeds 0 1 2 3 4] [--dry-run] [--only ...]
-                                          run every variant and seed the claims need (resumable), judge them
+    m3t study [--preset study] [--seeds 0 1 2 3 4] [--dry-run] [--only sgsa ...] [--set KEY=VALUE ...]
+                                          every variant and seed the claims need as DVC experiments, then judged
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
 
 This module parses the command line and holds the workspace and service commands; the experiment commands (sweeps,
-tables, claims, studies) are in :mod:`cli.experiments`.
+tables, claims, studies) are in :mod:`cli.experiments`; every sweep and study runs its variants as DVC experiments
+through :mod:`cli.variants`.
 """
 from __future__ import annotations
 
@@ -237,23 +237,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--layers", type=int, default=None, help="L of the Tab. 2 sweep (default: params' sgsa layers)")
     p.add_argument("--dry-run", action="store_true")
     p.set_defaults(func=experiments.cmd_sgsa_sweep)
-    p = sub.add_parser("sgsa-study", help="the SGSA claims (SGSA vs PT, N = 1 vs inf) over seeds, with intervals")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    p.add_argument("--split", default="test")
-    p.add_argument("--out", default="metrics/sgsa-claims")
-    p.set_defaults(func=experiments.cmd_sgsa_study)
     p = sub.add_parser("claims", help="judge the papers' claims on the MLflow runs: claims.json / claims.md")
     p.add_argument("--min-seeds", type=int, default=3, help="fewer seeds per variant: inconclusive")
     p.add_argument("--out", default=None, help="folder of claims.json / claims.md (default: data.metrics_dir)")
     p.set_defaults(func=experiments.cmd_claims)
-    p = sub.add_parser("study", help="run every variant and seed the claims need (resumable), then judge the claims")
+    p = sub.add_parser("study", help="every variant and seed the claims need, as DVC experiments; then the claims")
     p.add_argument("--preset", default="study")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4],
                    help="training seeds of every variant (default 5: the seed-half check splits them 2 + 3)")
-    p.add_argument("--root", default=None, help="folder of everything the study writes (default studies/<preset>)")
-    p.add_argument("--dry-run", action="store_true", help="print the plan (writes only the params files)")
-    p.add_argument("--only", nargs="+", default=None, metavar="STAGE",
-                   help="only these steps: stage names, variants (slr-s0) or variant.stage")
+    p.add_argument("--out", default=None, help="folder of the logs, timings and verdicts (default studies/<preset>)")
+    p.add_argument("--dry-run", action="store_true", help="print the dvc exp run commands, run nothing")
+    p.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                   help="only these variants: families (sgsa, smlm, slr, tokenizer, shared), stages or variant names")
+    p.add_argument("--set", nargs="+", default=(), metavar="KEY=VALUE", dest="settings",
+                   help="settings of every variant, e.g. sgsa_evaluate.counter=ground_truth")
     p.add_argument("--no-claims", action="store_true", help="do not judge the claims at the end")
     p.set_defaults(func=experiments.cmd_study)
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")

@@ -19,7 +19,7 @@ import shutil
 from pathlib import Path
 
 from dashboards import html as h
-from dashboards.sections.claims import claims, repeatability, saved_claims, sgsa_study
+from dashboards.sections.claims import claims, repeatability, saved_claims
 from dashboards.sections.codebooks import codebooks
 from dashboards.sections.curves import curves
 from dashboards.sections.quality import quality
@@ -29,7 +29,6 @@ from dashboards.sections.videos import videos
 from m3t.atomic import replace_dir
 from m3t.config import Params, load_params
 from m3t.experiment import fetch_runs
-from m3t.shards.folders import DataConfig
 
 
 def build_dashboard(params: Params, out: str | Path | None = None, root: str | Path = ".") -> Path:
@@ -37,7 +36,7 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
     ``index.html``."""
     out = Path(out or params.experiment.dashboard_dir)
     runs = fetch_runs(params.experiment, root)
-    data: DataConfig = params.data
+    data = params.data
     study_claims = Path(data.metrics_dir) / "study" / "claims.json"  # `m3t study`'s verdicts, when judged
     generated = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     tmp = out.with_name(out.name + ".tmp")
@@ -53,9 +52,7 @@ def build_dashboard(params: Params, out: str | Path | None = None, root: str | P
         "curves.html": ("Training curves", curves(runs, params.experiment, root), True),
         "claims.html": ("The papers' claims on these runs", claims(runs) + (saved_claims(
             study_claims, "The claims study: every claim over 5 seeds on the study corpus", "m3t study")
-            if study_claims.exists() else "") + sgsa_study(
-            Path(data.metrics_dir) / "sgsa-claims" / "claims.json")
-            + repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
+            if study_claims.exists() else "") + repeatability(Path(root) / "benchmarks" / "results" / "reproducible.json"), False),
         "codebooks.html": ("Codebooks: utilisation and token histograms", codebooks(runs, params), True),
         "quality.html": ("Data quality per corpus", quality(params), True),
         "videos.html": ("Videos: reference vs each model, per test clip", videos(runs, tmp / "media"), False),

@@ -22,6 +22,7 @@ import yaml
 
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
 from m3t.dataclass_io import build_dataclass, coerce
+from m3t.shards.folders import DataConfig  # imported here: every stage derives its folders from it
 
 if TYPE_CHECKING:  # for readers and type checkers; at run time the classes come from SECTIONS
     from m3t.backtranslation.config import (
@@ -33,7 +34,6 @@ if TYPE_CHECKING:  # for readers and type checkers; at run time the classes come
     from m3t.experiment import ExperimentConfig
     from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
     from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
-    from m3t.shards.folders import DataConfig
     from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
     from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
     from m3t.tokenizers.config import TokenizerConfig, TokenizerTrainConfig

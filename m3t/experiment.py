@@ -201,13 +201,30 @@ def start_run(cfg: ExperimentConfig, stage: str, root: str | Path = ".", tags: d
             os.environ["MLFLOW_TRACKING_URI"] = outer
 
 
+def _create_experiment(client: Any, cfg: ExperimentConfig, root: Path) -> None:
+    client.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri(),
+                             tags=experiment_tags())
+
+
+def ensure_experiment(cfg: ExperimentConfig, root: str | Path = ".") -> None:
+    """Create ``cfg.experiment`` in its store, artifacts under ``root``, unless it exists (or tracking is off):
+    runs started later from a temporary copy of the workspace (``dvc exp run --temp``) keep their artifacts here."""
+    if not cfg.enabled:
+        return
+    disable_telemetry()
+    import mlflow
+
+    client = mlflow.MlflowClient(tracking_uri(cfg, Path(root)))
+    if client.get_experiment_by_name(cfg.experiment) is None:
+        _create_experiment(client, cfg, Path(root))
+
+
 @contextmanager
 def _open_run(mlflow: Any, cfg: ExperimentConfig, root: Path, stage: str, tags: dict[str, str] | None,
               variant: str | None) -> Iterator[Run]:
     experiment = mlflow.get_experiment_by_name(cfg.experiment)
     if experiment is None:
-        mlflow.create_experiment(cfg.experiment, artifact_location=(root / cfg.artifact_dir).resolve().as_uri(),
-                                 tags=experiment_tags())
+        _create_experiment(mlflow.MlflowClient(), cfg, root)
     else:  # a store made before these tags (the saved view, once written, is the user's to edit)
         for key, value in experiment_tags().items():
             if key not in experiment.tags or key in EXPERIMENT_KIND and experiment.tags[key] != value:

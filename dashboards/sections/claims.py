@@ -1,5 +1,5 @@
-"""The claims page: the papers' claims judged on the runs, a study's saved verdicts, the SGSA study, and which
-digits of the training figures repeat under other arithmetic."""
+"""The claims page: the papers' claims judged on the runs, a study's saved verdicts, and which digits of the
+training figures repeat under other arithmetic."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,6 @@ from m3t.claims.report import stability_line
 from m3t.claims.verdicts import claims_table, stability
 from m3t.experiment import RunRecord
 from m3t.metrics.stats import agreeing_digits
-from m3t.sgsa.table import in_display_units
 
 
 def _claim_rows(rows: list[dict]) -> str:
@@ -56,32 +55,6 @@ def saved_claims(path: Path, title: str, command: str) -> str:
     rows = [r for r in saved.get("claims", []) if r["verdict"] != "not run"]
     note = CLAIMS_NOTE + stability_line(stability(rows)) + f" ({path}, from {command})"
     return f"<h2>{h.esc(title)}</h2><p class=note>{h.esc(note)}</p>" + _claim_rows(rows)
-
-
-def sgsa_study(path: Path) -> str:
-    """The SGSA study's claims (``m3t sgsa-study``: ``claims.json``): verdicts with their seeds and hierarchical
-    intervals, and how many verdicts flip between two disjoint halves of the seeds."""
-    if not path.exists():
-        return h.empty("No SGSA study yet: run <code>m3t sgsa-study --seeds 0 1 2 3 4</code>.")
-    summary = json.loads(path.read_text())
-    body = []
-    for r in summary.get("comparisons", []):
-        metric, mean_a, mean_b, difference, low, high = in_display_units(r)
-        body.append([r["claim"], r["counter"], metric, f"{r['a']} {mean_a:.4g} -> {r['b']} {mean_b:.4g}",
-                     f"{difference:.3g} [{low:.3g}, {high:.3g}]", r["verdict"]])
-    steady = summary.get("stability") or {}
-    if steady.get("compared"):
-        first, second = steady["halves"]
-        stability = (f"Judged again on seeds {first} and on seeds {second} separately, {steady['flipped']} of "
-                     f"{steady['compared']} verdicts flip ({100 * steady['share_flipped']:.0f} %): a verdict that "
-                     "one set of retrains gives and the other does not is not a finding.")
-    else:
-        stability = "One seed: no stability check (it needs two disjoint seed sets)."
-    note = (f"SGSA study on the {summary.get('split', '?')} split, seeds {summary.get('seeds', [])}: B - A of the "
-            "seed-averaged means over clips, 95 % hierarchical bootstrap over each side's seeds and the clips. "
-            + stability)
-    header = ["claim", "counter", "metric", "A -> B", "B - A [95 % interval]", "verdict"]
-    return f"<h2>SGSA study</h2><p class=note>{h.esc(note)}</p>" + h.table(header, body, "sgsa-study")
 
 
 def repeatability(path: Path) -> str:

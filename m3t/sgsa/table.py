@@ -69,15 +69,6 @@ def counter_line(records: list[RunRecord]) -> str:
         (" (runs of both modes pooled: rerun one mode)" if len(modes) > 1 else "") + "."
 
 
-def in_display_units(row: dict) -> tuple[str, float, float, float, float, float]:
-    """A comparison row's metric name and mean A, mean B, B - A, interval low and high as tables show them: metres
-    (``*_m``) in millimetres (``*_mm``), other metrics as they are."""
-    scale = 1000.0 if row["metric"].endswith("_m") else 1.0
-    metric = row["metric"].removesuffix("_m") + "_mm" if scale > 1 else row["metric"]
-    low, high = row["interval95"]
-    return metric, *(scale * v for v in (row["mean_a"], row["mean_b"], row["difference"], low, high))
-
-
 def _render(title: str, first: str, rows: list[tuple[str, dict[str, float], int]], records: list[RunRecord]) -> str:
     columns = [f"{split} {name}" for split in SPLITS for name in (*HEADER_NAMES, "DTW-JPE")]
     body = [[name, *(fixed(values.get(f"{split}/{c}"), 2) for split in SPLITS for c in (*BLEU_COLUMNS, "dtw_jpe_mm")),

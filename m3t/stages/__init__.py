@@ -14,14 +14,13 @@ from collections.abc import Callable
 from typing import Any
 
 from m3t.config import Params, load_params
-from m3t.shards.folders import DataConfig
 from m3t.shards.io import data_version
 
 
 def shards_version(params: Params) -> dict[str, str]:
     """``{"data_version": digest}`` of the training corpora's shard files (train, dev, test) present now; ``{}``
     when there are none yet (the stages that write them)."""
-    data: DataConfig = params.data  # its methods derive every folder, so each stage imports it
+    data = params.data
     files = [folder / f"{split}.parquet" for folder in data.shards_dirs for split in ("train", "dev", "test")]
     files = [f for f in files if f.is_file()]
     return {"data_version": data_version(files)} if files else {}

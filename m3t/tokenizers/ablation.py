@@ -2,9 +2,9 @@
 
 The sweep follows the paper's design around a base setting (batch 16, the configured width): the three VQs
 (strong ``vq``, ``vq_ema``, ``vq_plain``: :mod:`m3t.tokenizers.vq`) vs FSQ, then FSQ over batch sizes, then FSQ
-over widths (``full=True``: the whole grid). Each setting is one
-``dvc exp run --temp -S ...`` (a temporary copy of the workspace, so ``params.yaml`` is left alone); the
-runs log to the MLflow store of the workspace through ``MLFLOW_TRACKING_URI``.
+over widths (``full=True``: the whole grid). ``m3t ablate-tokenizers`` runs each setting as one DVC experiment
+(``cli.variants``: ``dvc exp run --temp -S ...``, so ``params.yaml`` is left alone); the runs log to the MLflow
+store of the workspace.
 """
 from __future__ import annotations
 
@@ -34,13 +34,6 @@ def sweep_settings(base_width: int, widths: Iterable[int] = CPU_WIDTHS, batch_si
     out += [setting("fsq", b, base_width) for b in batch_sizes if b != base_batch]
     out += [setting("fsq", base_batch, w) for w in widths if w != base_width]
     return out
-
-
-def dvc_command(setting: dict, stage: str = "train-tokenizers") -> list[str]:
-    args = ["dvc", "exp", "run", "--temp", stage]
-    for key, value in setting.items():
-        args += ["-S", f"{key}={value}"]
-    return args
 
 
 def _cell(values: list[float], digits: int) -> str:

@@ -221,3 +221,38 @@ def test_the_objective_at_equal_production_updates_pairs_added_steps_runs_with_p
     assert equal["verdict"] == "not reproduced" and equal["b"] == "production + translation (added steps)"
     missing = claims_table(runs, claims=only("smlm-objective-bt-equal-updates"))[0]
     assert missing["verdict"] == "not run" and "translation_steps=added" in missing["note"]
+
+
+def sgsa_run(tmp: Path, run_id: str, adjacency: int, seed: int, start: int, systems: dict[str, float],
+             counter: str = "predicted") -> RunRecord:
+    """An evaluate-sgsa run: ``per_clip.csv`` with one row per (system, clip) of the test split, as
+    m3t.sgsa.pipeline writes it (clip_id, system, split, ..., dtw_jpe_body_m)."""
+    folder = tmp / run_id
+    _write(folder / "per_clip.csv", [{"clip_id": c, "system": system, "split": "test", "frames": 40,
+                                      "dtw_jpe_body_m": value + 0.01 * i}
+                                     for system, value in systems.items() for i, c in enumerate(CLIPS)])
+    _write(folder / "backtranslation.csv", [{"clip_id": c, "system": system, "split": "test", "language": "ASL-SYN",
+                                             "rouge_l": 100.0 - 10.0 * value + i}
+                                            for system, value in systems.items() for i, c in enumerate(CLIPS[:4])])
+    return RunRecord(run_id, "evaluate-sgsa", start, "FINISHED",
+                     {"sgsa.decoder_layers": "2", "sgsa.temporal_adjacency": str(adjacency)}, {}, folder,
+                     {"variant": f"sgsa L=2 N={adjacency or 'inf'}", "seed": str(seed), "counter": counter,
+                      "data_version": "v1"})
+
+
+def test_sgsa_system_claims_read_the_finite_adjacency_runs_of_the_models_own_counters_in_any_order(tmp_path):
+    """The study's N = inf runs may finish after the N = 1 ones (DVC restores what it ran before), and runs with
+    ground-truth lengths may be the newest: the PT-vs-SGSA claim still pairs the N = 1 runs' own-counter scores."""
+    finite = [sgsa_run(tmp_path, f"n1-{s}", 1, s, 10 + s, {"pt": 3.0, "sgsa": 2.0, "smlm": 1.0}) for s in range(3)]
+    inf = [sgsa_run(tmp_path, f"ninf-{s}", 0, s, 20 + s, {"sgsa": 2.5, "smlm": 1.0}) for s in range(3)]
+    truth = [sgsa_run(tmp_path, f"gt-{s}", 1, s, 30 + s, {"pt": 1.0, "sgsa": 9.0}, "ground_truth") for s in range(3)]
+    records = sorted(finite + inf + truth, key=lambda r: -r.start_time)
+    row = claims_table(records, claims=only("sgsa-vs-pt-dtw"))[0]
+    assert row["verdict"] == "reproduced" and sorted(row["runs_a"]) == [r.run_id for r in finite]
+    assert row["mean_a"] == pytest.approx(3.055) and row["mean_b"] == pytest.approx(2.055)
+    adjacency = claims_table(records, claims=only("sgsa-adjacency"))[0]  # ROUGE-L: N = inf 75 against N = 1 80
+    assert sorted(adjacency["runs_a"]) == [r.run_id for r in inf] and sorted(adjacency["runs_b"]) == [
+        r.run_id for r in finite]
+    assert (adjacency["mean_a"], adjacency["mean_b"]) == (pytest.approx(76.5), pytest.approx(81.5))
+    with pytest.raises(Exception, match="ground-truth lengths"):
+        only("sgsa-vs-pt-dtw")[0].collect(truth)

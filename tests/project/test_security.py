@@ -3,8 +3,8 @@
 1. Lint: ruff's flake8-bandit rules (``--select S``) report nothing. Accepted findings, each suppressed where it
    occurs (``# noqa: S...`` with its reason, or ``[tool.ruff.lint.per-file-ignores]`` in pyproject.toml):
 
-   - S603 ``cli/experiments.py`` ``cmd_ablate`` / ``cmd_sgsa_sweep``: ``subprocess.call`` of the ``dvc exp run``
-     argv list that ``dvc_command`` builds, no shell;
+   - S603 / S607 ``cli/variants.py`` ``run_logged`` / ``experiment_names``: ``subprocess`` calls of the
+     ``dvc exp run`` argv list that ``exp_argv`` builds and of two fixed ``git`` queries, no shell;
    - S603 ``cli/processes.py`` ``start``: ``subprocess.Popen`` of the argv list that ``plan()`` builds, no shell;
    - S310 ``cli/services.py`` ``_http``: ``urllib.request`` on a health URL; ``_http`` refuses anything but
      ``http://`` / ``https://`` first (the URLs come from ``services.json``, a file on disk);

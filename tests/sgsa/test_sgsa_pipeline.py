@@ -232,31 +232,6 @@ def test_tables_pool_seeds_and_follow_the_paper_layouts():
     assert len(sweep_settings("2", [0])) == 5 and len(sweep_settings("1", [0, 1, 2])) == 15
 
 
-def test_claims_study_pairs_clips_over_seeds(trained, body, tmp_path):
-    from m3t.metrics.stats import bootstrap_interval
-    from m3t.sgsa.study import run_study
-
-    params, _ = trained
-    summary = run_study(params.sgsa, params.sgsa_train, body, params.data, [0, 1], tmp_path, progress=False)
-    claims = {(r["claim"], r["counter"]) for r in summary["comparisons"]}
-    assert claims == {(c, counter) for c in ("SGSA beats PT (Tab. 1, N = inf)", "N = 1 beats N = inf (Tab. 2)")
-                      for counter in ("predicted", "ground_truth")}
-    for r in summary["comparisons"]:
-        low, high = r["interval95"]
-        assert low <= r["difference"] <= high
-        assert r["difference"] == pytest.approx(r["mean_b"] - r["mean_a"])
-    assert all(len(v["bleu4"]) == 2 for by_name in summary["per_seed"].values() for v in by_name.values())
-    assert all(v["length_ratio"] == [1.0, 1.0] for v in summary["per_seed"]["ground_truth"].values())
-    assert "| claim | counter | metric |" in (tmp_path / "claims.md").read_text()
-    steady = summary["stability"]  # seeds [0] and [1] judged apart
-    assert steady["halves"] == [[0], [1]] and steady["compared"] == len(summary["comparisons"])
-    assert 0 <= steady["flipped"] <= steady["compared"] and "Stability: the verdicts" in (tmp_path / "claims.md").read_text()
-    rng = np.random.default_rng(0)
-    assert bootstrap_interval(np.full(5, 2.0), rng) == (2.0, 2.0)
-    low, high = bootstrap_interval(np.array([-1.0, 1.0] * 10), rng)
-    assert low < 0 < high
-
-
 def test_sgsa_flow_logs_runs_that_the_tables_read(trained, tmp_path, capsys):
     import yaml
     from prefect.testing.utilities import prefect_test_harness
@@ -320,24 +295,3 @@ def test_the_length_penalty_is_symmetric_in_too_long_and_too_short():
     assert length_penalty(20, 10) == length_penalty(5, 10) == 2.0  # twice too long, twice too short
     assert length_penalty(1, 40) == 40.0  # one frame for forty: the raw DTW cost alone would not see it
     assert length_penalty(0, 10) == float("inf")
-
-
-def test_stability_counts_the_verdicts_that_flip_between_disjoint_seed_sets():
-    from m3t.sgsa.study import claims_markdown, stability
-
-    clips = np.linspace(1.0, 2.0, 12)
-    a = np.stack([clips] * 4)  # (R = 4, C) PT, the same on every seed
-    b = np.stack([clips - 0.5, clips - 0.5, clips + 0.5, clips + 0.5])  # SGSA: better on seeds 0, 1; worse on 2, 3
-    values = {"dtw_jpe_mean_m": None, "dtw_jpe_mean_pathnorm_m": None, "rouge_l": None}
-    per_clip = {"predicted": {"PT": {k: a for k in values}, "SGSA": {k: b for k in values}}}
-    steady = stability(per_clip, [("PT", "SGSA", "SGSA beats PT")], [0, 1, 2, 3])
-    assert steady["halves"] == [[0, 1], [2, 3]] and steady["compared"] == 3 and steady["flipped"] == 3
-    assert {(f["first"], f["second"]) for f in steady["flips"]} == {("SGSA better", "PT better"),
-                                                                    ("PT better", "SGSA better")}  # ROUGE: higher
-    same = stability({"predicted": {"PT": {k: a for k in values}, "SGSA": {k: a - 0.5 for k in values}}},
-                     [("PT", "SGSA", "SGSA beats PT")], [0, 1, 2, 3])
-    assert same["flipped"] == 0 and same["share_flipped"] == 0.0
-    assert stability(per_clip, [("PT", "SGSA", "c")], [0])["compared"] == 0  # one seed: nothing to compare
-    text = claims_markdown({"split": "test", "seeds": [0, 1, 2, 3], "comparisons": [], "per_seed": {},
-                            "stability": steady})
-    assert "differ in 3 of 3 rows (100 %)" in text

@@ -70,25 +70,6 @@ def test_a_tiny_pipeline_fills_the_pages(tiny_workspace, tmp_path):
     assert set(picker) == {r.run_id for r in runs} and picker[smlm.run_id]["metrics"] == smlm.metrics
 
 
-def test_the_sgsa_study_shows_its_verdicts_intervals_and_how_many_flip_between_seed_halves(tmp_path):
-    from dashboards.sections.claims import sgsa_study
-
-    assert "m3t sgsa-study" in sgsa_study(tmp_path / "missing.json")
-    summary = {"split": "test", "seeds": [0, 1, 2, 3], "comparisons": [
-        {"claim": "SGSA beats PT (Tab. 1, N = inf)", "counter": "predicted", "a": "PT", "b": "SGSA L=2 N=inf",
-         "metric": "dtw_jpe_mean_m", "mean_a": 3.005, "mean_b": 3.358, "difference": 0.352,
-         "interval95": [0.0376, 0.71], "verdict": "PT better"}],
-        "stability": {"halves": [[0, 1], [2, 3]], "compared": 12, "flipped": 4, "share_flipped": 4 / 12}}
-    path = tmp_path / "claims.json"
-    path.write_text(json.dumps(summary))
-    html = sgsa_study(path)
-    assert 'id="sgsa-study"' in html and "PT better" in html and "dtw_jpe_mean_mm" in html
-    assert "352 [37.6, 710]" in html  # metres shown in mm
-    assert "4 of 12 verdicts flip (33 %)" in html and "seeds [0, 1] and on seeds [2, 3]" in html
-    path.write_text(json.dumps({**summary, "stability": {"compared": 0}}))
-    assert "no stability check" in sgsa_study(path)
-
-
 def test_the_repeatability_table_counts_the_digits_two_arithmetics_share(tmp_path):
     from dashboards.sections.claims import repeatability
     from m3t.metrics.stats import agreeing_digits
