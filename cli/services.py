@@ -20,13 +20,14 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
 from cli.processes import Running, Service, ServiceError, is_running, start, stop
-from m3t.atomic import write_json
+from m3t.atomic import run_lock, write_json
 from m3t.experiment import TELEMETRY_OFF, absolute_uri
 
 ORDER = ("prefect", "mlflow", "deployments")  # start order; ``down`` stops in reverse (the runner needs the API)
@@ -207,11 +208,37 @@ def wait_healthy(record: Running, proc: subprocess.Popen | None, timeout_s: floa
                        f"--timeout if the machine is busy); the end of {record.log}:\n{log_tail(record.log)}")
 
 
+@contextmanager
+def _starting(run_dir: Path) -> Iterator[None]:
+    """Hold ``<run_dir>.up.lock`` while services start, so that a second ``m3t up`` on the same run directory stops
+    at once, naming the first, instead of starting a second set. The lock is the kernel's (``flock``): a killed
+    ``up`` never leaves the next one locked out."""
+    lock = run_dir.with_name(run_dir.name + ".up.lock")
+    held = ExitStack()
+    try:
+        held.enter_context(run_lock(lock, "m3t up"))
+    except RuntimeError:
+        try:
+            pid = lock.read_text(encoding="utf-8").strip() or "unknown"
+        except OSError:
+            pid = "unknown"
+        raise ServiceError(f"another `m3t up` (pid {pid}) is starting the services of {run_dir}; wait for it to "
+                           "finish, then `m3t status`") from None
+    with held:
+        yield
+
+
 def up(cfg: ServicesConfig, say: Callable[[str], None] = print) -> list[Running]:
     """Start what is not running yet (ports checked before anything starts), wait until every service is
-    healthy; if one fails, stop what this call started and raise ServiceError."""
+    healthy; if one fails, stop what this call started and raise ServiceError. One ``up`` at a time per run
+    directory (:func:`_starting`)."""
     root = Path(cfg.root).resolve()
     run_dir = (root / cfg.run_dir).resolve()
+    with _starting(run_dir):
+        return _start_missing(cfg, root, run_dir, say)
+
+
+def _start_missing(cfg: ServicesConfig, root: Path, run_dir: Path, say: Callable[[str], None]) -> list[Running]:
     running = {r.name: r for r in read_state(run_dir) if is_running(r)}
     wanted = {"prefect": cfg.prefect_port, "mlflow": cfg.mlflow_port}
     for name, record in running.items():

@@ -13,6 +13,7 @@ imports the config module of each section it declares in ``dvc.yaml``).
 from __future__ import annotations
 
 import importlib
+import os
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from m3t.corpora.base import CORPORA, CorpusSource, adapter_class
-from m3t.dataclass_io import build_dataclass, coerce
+from m3t.dataclass_io import build_dataclass, coerce, short_repr
 from m3t.shards.folders import DataConfig  # imported here: every stage derives its folders from it
 
 if TYPE_CHECKING:  # for readers and type checkers; at run time the classes come from SECTIONS
@@ -145,7 +146,7 @@ def _check_corpora(raw: dict) -> dict:
         if name not in CORPORA:
             raise ConfigError(f"unknown corpus corpora.{name}; allowed corpora: {', '.join(CORPORA)}")
         if not isinstance(entry, (dict, type(None))):
-            raise ConfigError(f"corpora.{name}: expected a mapping with root and options; got {entry!r}")
+            raise ConfigError(f"corpora.{name}: expected a mapping with root and options; got {short_repr(entry)}")
         entry = dict(entry or {})
         if "shards_dir" in entry:
             raise ConfigError(f"corpora.{name}.shards_dir: shard folders are derived as data.shards_root/{name}; "
@@ -171,12 +172,55 @@ def merge(base: dict, overlay: dict) -> dict:
     return out
 
 
+MAX_NODES_ENV = "M3T_YAML_MAX_NODES"
+MAX_NODES = 1_000_000  # values a params file may hold once its aliases are expanded (params.yaml holds ~1,000)
+MAX_BYTES_ENV = "M3T_YAML_MAX_BYTES"
+MAX_BYTES = 16 * 2**20  # a params file's size (params.yaml is ~20 kB)
+
+
+def _expanded_nodes(node: yaml.Node, memo: dict[int, int]) -> int:
+    """How many nodes ``node`` becomes when every alias is expanded, counted without expanding (an alias is a
+    shared node: its count is remembered, so a file of nested aliases is counted in a pass over its nodes)."""
+    key = id(node)
+    if key not in memo:
+        memo[key] = 1  # a recursive alias counts once instead of forever
+        if isinstance(node, yaml.SequenceNode):
+            memo[key] = 1 + sum(_expanded_nodes(n, memo) for n in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            memo[key] = 1 + sum(_expanded_nodes(k, memo) + _expanded_nodes(v, memo) for k, v in node.value)
+    return memo[key]
+
+
+def safe_yaml(text: str, where: str | Path) -> object:
+    """``yaml.safe_load`` with the expansion of aliases bounded: a file whose aliases would expand to more than
+    ``M3T_YAML_MAX_NODES`` values (default :data:`MAX_NODES`) is refused before anything is built."""
+    limit = int(os.environ.get(MAX_NODES_ENV) or MAX_NODES)
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        nodes = _expanded_nodes(node, {})
+        if nodes > limit:
+            raise ConfigError(f"{where}: its aliases expand to {nodes:,} values, more than {limit:,} (a YAML alias "
+                              f"bomb?); a legitimately large file: raise {MAX_NODES_ENV}")
+        return loader.construct_document(node)
+    except RecursionError:
+        raise ConfigError(f"{where}: nested too deeply to read") from None
+    finally:
+        loader.dispose()
+
+
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"params file {path} not found; run from the repository root or pass its path")
+    size, limit = path.stat().st_size, int(os.environ.get(MAX_BYTES_ENV) or MAX_BYTES)
+    if size > limit:
+        raise ConfigError(f"{path}: {size:,} bytes, more than {limit:,} (a params file is tens of kB); a legitimately "
+                          f"large file: raise {MAX_BYTES_ENV}")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        data = safe_yaml(path.read_text(encoding="utf-8"), path) or {}
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); re-save it as UTF-8") from exc
     except yaml.YAMLError as exc:

@@ -11,12 +11,26 @@ dataclass's own ``TypeError``. Errors are ``DataclassError`` unless the caller n
 from __future__ import annotations
 
 import dataclasses
+import reprlib
 import types
 import typing
 from functools import cache
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
 T = TypeVar("T")
+
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlevel, _SHORT.maxstring, _SHORT.maxother, _SHORT.maxlong = 2, 80, 80, 40
+_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = _SHORT.maxset = 4
+SHORT_REPR_CHARS = 200
+
+
+def short_repr(value: Any) -> str:
+    """``repr`` of at most :data:`SHORT_REPR_CHARS` characters whatever the value's size: error messages name a
+    value, never embed a huge one (a list of millions of items in a config file)."""
+    text = _SHORT.repr(value)
+    return text if len(text) <= SHORT_REPR_CHARS else text[:SHORT_REPR_CHARS - 3] + "..."
 
 
 class DataclassError(ValueError):
@@ -39,13 +53,13 @@ def coerce(value: Any, tp: Any, where: str, error: type[Exception] = DataclassEr
         return build_dataclass(tp, value, where, error=error)
     if origin is dict:
         if not isinstance(value, dict):
-            raise error(f"{where}: expected a mapping, got {type(value).__name__} {value!r}")
+            raise error(f"{where}: expected a mapping, got {type(value).__name__} {short_repr(value)}")
         key_tp, value_tp = get_args(tp)
-        return {coerce(k, key_tp, f"{where} key {k!r}", error): coerce(v, value_tp, f"{where}.{k}", error)
+        return {coerce(k, key_tp, f"{where} key {short_repr(k)}", error): coerce(v, value_tp, f"{where}.{k}", error)
                 for k, v in value.items()}
     if origin is Literal:
         if value not in get_args(tp):
-            raise error(f"{where}: {value!r} is not allowed; expected {type_name(tp)}")
+            raise error(f"{where}: {short_repr(value)} is not allowed; expected {type_name(tp)}")
         return value
     if origin in (typing.Union, types.UnionType):
         args = get_args(tp)
@@ -56,10 +70,10 @@ def coerce(value: Any, tp: Any, where: str, error: type[Exception] = DataclassEr
                 return coerce(value, arg, where, error)
             except error:
                 continue
-        raise error(f"{where}: {value!r} matches none of {[type_name(a) for a in args]}")
+        raise error(f"{where}: {short_repr(value)} matches none of {[type_name(a) for a in args]}")
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise error(f"{where}: expected a list, got {type(value).__name__} {value!r}")
+            raise error(f"{where}: expected a list, got {type(value).__name__} {short_repr(value)}")
         args = get_args(tp)
         item_tp = args[0] if len(args) == 2 and args[1] is Ellipsis else None
         if item_tp is None and len(args) != len(value):
@@ -69,15 +83,15 @@ def coerce(value: Any, tp: Any, where: str, error: type[Exception] = DataclassEr
         )
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise error(f"{where}: expected a number, got {type(value).__name__} {value!r}")
+            raise error(f"{where}: expected a number, got {type(value).__name__} {short_repr(value)}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise error(f"{where}: expected an integer, got {type(value).__name__} {value!r}")
+            raise error(f"{where}: expected an integer, got {type(value).__name__} {short_repr(value)}")
         return value
     if tp in (str, bool):
         if not isinstance(value, tp):
-            raise error(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+            raise error(f"{where}: expected {tp.__name__}, got {type(value).__name__} {short_repr(value)}")
         return value
     raise error(f"{where}: unsupported annotation {tp!r}")  # a bug in the dataclass, not in the mapping
 

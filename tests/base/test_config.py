@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -135,3 +136,72 @@ def test_every_params_field_has_its_section_class():
     for f in dataclasses.fields(Params):
         if f.name != "corpora":
             assert section_class(f.name).__name__ == str(f.type).split(".")[-1], f.name
+
+
+def _nodes(text: str) -> int:
+    """Nodes of a file without aliases, counted on its parsed value (every dict key and value, list item and
+    the containers themselves)."""
+    def count(value) -> int:
+        if isinstance(value, dict):
+            return 1 + sum(count(k) + count(v) for k, v in value.items())
+        if isinstance(value, list):
+            return 1 + sum(count(v) for v in value)
+        return 1
+    return count(yaml.safe_load(text))
+
+
+def _bomb(levels: int) -> str:
+    """params.yaml with a "billion laughs" under a known key: ``fitting.iterations`` becomes a list of ``levels``
+    + 1 lists, each holding ten aliases of the one before, so it expands to 10**levels leaves from a few hundred
+    bytes."""
+    items = ['&a0 ["lol"]'] + [f"&a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, levels + 1)]
+    text, count = re.subn(r"(?m)^  iterations: 100 .*$", "  iterations: [" + ", ".join(items) + "]",
+                          Path("params.yaml").read_text())
+    assert count == 1
+    return text
+
+
+def _expanded(levels: int) -> int:
+    """How many values :func:`_bomb`'s ``fitting.iterations`` adds once expanded, counted by hand: a list of ten
+    aliases of level i - 1 is 1 + 10 n(i - 1) nodes (n(0) = 2: the list and "lol"), plus the outer list, where
+    params.yaml had one number."""
+    n = [2]
+    for _ in range(levels):
+        n.append(1 + 10 * n[-1])
+    return sum(n)
+
+
+def test_an_alias_bomb_is_refused_at_once_naming_the_file_and_the_cap(tmp_path, monkeypatch):
+    """10**9 leaves under a known key: refused in well under a second before anything is built (unbounded, the
+    same file ran ``load_params`` for minutes into a MemoryError); a legitimately large file passes once the
+    named environment key is raised."""
+    import time
+
+    path = tmp_path / "params.yaml"
+    path.write_text(_bomb(9))
+    start = time.monotonic()
+    plain = _nodes(Path("params.yaml").read_text())
+    with pytest.raises(ConfigError, match=f"aliases expand to {plain + _expanded(9):,} values.*raise "
+                       "M3T_YAML_MAX_NODES") as err:
+        load_params(path)
+    assert time.monotonic() - start < 1.0 and str(path) in str(err.value) and len(str(err.value)) < 400
+    path.write_text(_bomb(4))  # 10**4 leaves: under the cap, then a clear type error with a short message
+    with pytest.raises(ConfigError, match=r"fitting\.iterations: expected an integer, got list") as err:
+        load_params(path)
+    assert len(str(err.value)) < 400  # the value is named, not printed whole
+    total = plain + _expanded(4)
+    monkeypatch.setenv("M3T_YAML_MAX_NODES", str(total - 1))  # the count is exact: one less refuses it
+    with pytest.raises(ConfigError, match=f"expand to {total:,} values, more than {total - 1:,}"):
+        load_params(path)
+    monkeypatch.setenv("M3T_YAML_MAX_BYTES", "100")
+    with pytest.raises(ConfigError, match=r"bytes, more than 100 .*raise M3T_YAML_MAX_BYTES"):
+        load_params(path)
+
+
+def test_anchors_and_aliases_that_params_files_use_still_load(tmp_path):
+    base = yaml.safe_load(Path("params.yaml").read_text())
+    text = Path("params.yaml").read_text().replace("fitting:\n", "fitting: &fit\n", 1) + "\n# reuse\n"
+    path = tmp_path / "params.yaml"
+    path.write_text(text)
+    assert to_dict(load_params(path)) == to_dict(load_params("params.yaml"))
+    assert yaml.safe_load(text) == base

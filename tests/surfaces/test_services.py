@@ -254,3 +254,32 @@ def test_a_service_that_dies_rolls_back_what_up_started(tmp_path, monkeypatch):
         up(cfg, say=lambda _: None)
     assert read_state(cfg.run_dir) == []
     assert port_free("127.0.0.1", port)  # the web server was stopped
+
+
+def test_a_second_up_on_the_same_run_directory_says_the_first_is_starting(tmp_path, capsys):
+    """Two ``m3t up`` at once on one run directory: the second stops at once, naming the first, and starts
+    nothing; once the first is gone (even killed), ``up`` runs again."""
+    params, run_dir = write_params(tmp_path), tmp_path / "run"
+    lock = tmp_path / "run.up.lock"
+    holder = subprocess.Popen([sys.executable, "-c", (  # noqa: S603 - fixed argv
+        "import sys, time; from m3t.atomic import run_lock\n"
+        f"with run_lock({str(lock)!r}, 'm3t up'):\n    print('held', flush=True); time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        ports = ["--prefect-port", str(free_port()), "--mlflow-port", str(free_port())]
+        start = time.monotonic()
+        assert main(["up", "--params", str(params), "--run-dir", str(run_dir), *ports]) == 1
+        assert time.monotonic() - start < 5.0  # refused at once, not after a start timeout
+        assert f"another `m3t up` (pid {holder.pid}) is starting the services of {run_dir}" in capsys.readouterr().err
+        assert not run_dir.exists()  # no log, no record, no process
+    finally:
+        holder.kill()
+        holder.wait()
+    with socket.socket() as other:  # the lock died with its holder: the next `up` gets past it (to the port check)
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        busy = str(other.getsockname()[1])
+        assert main(["up", "--params", str(params), "--run-dir", str(run_dir), "--prefect-port", busy,
+                     "--mlflow-port", str(free_port())]) == 1
+    assert f"port {busy} is in use" in capsys.readouterr().err
