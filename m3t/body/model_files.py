@@ -55,13 +55,47 @@ class _SparseRecord(_PickledRecord):
     kind = "sparse"
 
 
+MAX_DENSE_VALUES = 2**28  # a sparse matrix made dense (SMPL-X's J_regressor: 55 x 10,475 = 576k values)
+
+
+class _ArrayClass:
+    """``numpy.ndarray`` as a pickle names it. A real array pickle only passes the class to ``_reconstruct``,
+    which starts from an empty array and then fills it from the bytes the file holds; calling ``ndarray`` itself
+    with a shape would allocate what the file merely declares (``ndarray((10**9, 12), float32)``: 48 GB of
+    uninitialised memory from ~200 bytes), so that is refused."""
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        raise pickle.UnpicklingError("refused global numpy.ndarray called with a shape: an array of a size the file "
+                                     "declares instead of holds")
+
+
+def _reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+    """numpy's array-pickle entry point, for plain arrays: the empty start array (shape ``(0,)``) that
+    ``__setstate__`` then fills from the file's own bytes."""
+    core = getattr(np, "_core", None) or np.core  # numpy 2 moved numpy.core to numpy._core
+    if subtype is not _ArrayClass or not isinstance(shape, tuple) or int(np.prod(shape, dtype=np.int64)) > 1:
+        what = "numpy.ndarray" if subtype is _ArrayClass else getattr(subtype, "__name__", "?")
+        raise pickle.UnpicklingError(f"refused numpy array reconstruction of {what} with shape {shape!r}: not a "
+                                     "plain array pickle")
+    return core.multiarray._reconstruct(np.ndarray, shape, dtype)
+
+
+def _dtype(*args: Any) -> np.dtype:
+    """``numpy.dtype`` without object fields: an object array is sized by its declared shape before its items are
+    read (so a short list can claim 10**9 slots), and no body-model or corpus array holds Python objects."""
+    dtype = np.dtype(*args)
+    if dtype.hasobject:
+        raise pickle.UnpicklingError("refused numpy object array: model and corpus arrays hold numbers")
+    return dtype
+
+
 def _numpy_global(name: str) -> Any:
     core = getattr(np, "_core", None) or np.core  # numpy 2 moved numpy.core to numpy._core
     table = {
-        "_reconstruct": core.multiarray._reconstruct,
+        "_reconstruct": _reconstruct,
         "scalar": core.multiarray.scalar,
-        "ndarray": np.ndarray,
-        "dtype": np.dtype,
+        "ndarray": _ArrayClass,
+        "dtype": _dtype,
     }
     return table.get(name)
 
@@ -116,10 +150,13 @@ def _to_array(value: Any, key: str, path: Path) -> Any:
         try:
             from scipy import sparse
 
-            shape = tuple(state.get("_shape") or state.get("shape"))
+            shape = tuple(int(n) for n in state.get("_shape") or state.get("shape"))
             maker = {"csc": sparse.csc_matrix, "csr": sparse.csr_matrix}.get(getattr(value, "fmt", ""))
             if maker is None or not {"data", "indices", "indptr"} <= set(state):
                 raise KeyError(getattr(value, "fmt", "?"))
+            if len(shape) != 2 or min(shape) < 0 or shape[0] * shape[1] > MAX_DENSE_VALUES:
+                raise ValueError(f"declared shape {shape} would make {shape[0] * shape[1] if len(shape) == 2 else '?'} "
+                                 f"dense values, more than a body model holds ({MAX_DENSE_VALUES:,})")
             return maker((state["data"], state["indices"], state["indptr"]), shape=shape).toarray()
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{path}: key {key!r} is a sparse matrix in an unsupported layout ({exc}). "

@@ -27,6 +27,7 @@ from m3t.shards.schema import (
     FittedClip,
     ShardFormatError,
     arrow_schema,
+    check_column_types,
     check_schema_metadata,
     clip_from_columns,
     clip_metadata,
@@ -223,6 +224,12 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     source = str(path)
     pf = parquet_file(path)
     layout = check_schema_metadata(pf.schema_arrow.metadata, source)
+    try:
+        expected = arrow_schema(layout)
+    except ValueError as exc:  # a layout no writer makes: the metadata was edited
+        raise ShardFormatError(f"{source}: its stored layout cannot be a shard's ({exc}); the shard is damaged") from exc
+    check_column_types(pf.schema_arrow, expected, source, "the shard was edited or not written by m3t; re-run the "
+                                                          "stage that wrote it")
     names = list(layout.names if modalities is None else modalities)
     for name in names:
         if name not in layout.names:

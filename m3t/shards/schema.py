@@ -179,6 +179,25 @@ def check_schema_metadata(metadata: dict[bytes, bytes] | None, source: str) -> M
     return layout_from_json(metadata[LAYOUT_KEY].decode(), source)
 
 
+def check_column_types(found: pa.Schema, expected: pa.Schema, source: str, remedy: str) -> None:
+    """Every column of ``expected`` in ``found`` with exactly its Arrow type, checked on the file's schema before
+    any row is read: a column of another type (int64 or string where float lists belong, a number stored as
+    text) stops here with the file, the column and both types, not later in a model.
+
+    Raises
+    ------
+    ShardFormatError
+        A column is missing or has another type; ``remedy`` says what to do.
+    """
+    for field in expected:
+        index = found.get_field_index(field.name)
+        if index < 0:
+            raise ShardFormatError(f"{source}: column {field.name!r} is missing (or repeated); {remedy}")
+        if not found.field(index).type.equals(field.type):
+            raise ShardFormatError(f"{source}: column {field.name!r} is {found.field(index).type}, expected "
+                                   f"{field.type}; {remedy}")
+
+
 def metrics_to_json(metrics: dict[str, float]) -> str:
     """Encode metrics as standard JSON (NaN / inf become null)."""
     return json.dumps({k: (float(v) if math.isfinite(float(v)) else None) for k, v in metrics.items()})

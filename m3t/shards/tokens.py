@@ -25,6 +25,7 @@ from m3t.shards.schema import (
     CLIP_COLUMNS,
     METADATA_COLUMNS,
     ShardFormatError,
+    check_column_types,
     clip_from_columns,
     clip_record,
 )
@@ -73,6 +74,17 @@ def _check(clip: TokenClip, info: TokenInfo) -> None:
             raise ValueError(f"clip {clip.clip.id!r}, stream {stream!r}: token outside [0, {size})")
 
 
+def token_schema(info: TokenInfo) -> pa.Schema:
+    """The Arrow schema of a token shard of ``info``'s streams, with version and info in its metadata."""
+    fields = [pa.field(n, METADATA_COLUMNS[n], nullable=n == "label") for n in CLIP_COLUMNS]
+    fields.append(pa.field("num_frames", pa.int32(), nullable=False))
+    fields += [pa.field(s, pa.list_(pa.int16()), nullable=False) for s in info.streams]
+    meta = {b"m3t.token_schema_version": str(TOKEN_SCHEMA_VERSION).encode(),
+            TOKEN_INFO_KEY: json.dumps({"streams": info.streams, "downsample": info.downsample,
+                                        "tokenizers": info.tokenizers}).encode()}
+    return pa.schema(fields, metadata=meta)
+
+
 def write_token_shard(path: str | os.PathLike, clips: Sequence[TokenClip], info: TokenInfo) -> Path:
     """Validate and write ``clips`` atomically."""
     if max(info.streams.values(), default=0) > np.iinfo(np.int16).max:
@@ -80,13 +92,7 @@ def write_token_shard(path: str | os.PathLike, clips: Sequence[TokenClip], info:
     for clip in clips:
         _check(clip, info)
     rows = [clip_record(c.clip) for c in clips]
-    fields = [pa.field(n, METADATA_COLUMNS[n], nullable=n == "label") for n in CLIP_COLUMNS]
-    fields.append(pa.field("num_frames", pa.int32(), nullable=False))
-    fields += [pa.field(s, pa.list_(pa.int16()), nullable=False) for s in info.streams]
-    meta = {b"m3t.token_schema_version": str(TOKEN_SCHEMA_VERSION).encode(),
-            TOKEN_INFO_KEY: json.dumps({"streams": info.streams, "downsample": info.downsample,
-                                        "tokenizers": info.tokenizers}).encode()}
-    schema = pa.schema(fields, metadata=meta)
+    schema = token_schema(info)
     arrays = [pa.array([r[n] for r in rows], type=METADATA_COLUMNS[n]) for n in CLIP_COLUMNS]
     arrays.append(pa.array([c.num_frames for c in clips], type=pa.int32()))
     arrays += [pa.array([np.asarray(c.tokens[s], dtype=np.int16) for c in clips], type=pa.list_(pa.int16()))
@@ -109,9 +115,8 @@ def read_token_shard(path: str | os.PathLike) -> TokenShard:
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ShardFormatError(f"{path}: cannot parse the {TOKEN_INFO_KEY.decode()} metadata ({exc!r}); rerun the "
                                "tokenize stage") from exc
-    missing = [n for n in (*CLIP_COLUMNS, "num_frames", *info.streams) if n not in pf.schema_arrow.names]
-    if missing:
-        raise ShardFormatError(f"{path}: columns {missing} missing; rerun the tokenize stage")
+    check_column_types(pf.schema_arrow, token_schema(info), str(path), "the token shard was edited or not written "
+                       "by m3t; rerun the tokenize stage")
     table = pf.read()
     columns = {n: table.column(n).to_pylist() for n in (*CLIP_COLUMNS, "num_frames")}
     streams = {s: table.column(s).to_pylist() for s in info.streams}

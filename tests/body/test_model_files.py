@@ -113,3 +113,52 @@ def test_landmark_vertices_take_each_faces_corner_of_largest_weight():
         _landmark_vertices({"f": smplx["f"], "lmk_faces_idx": smplx["lmk_faces_idx"]})
     assert str(info.value) == ("the SMPL-X file lacks 'lmk_faces_idx' / 'lmk_bary_coords' (the landmark embedding); "
                                "use SMPLX_NEUTRAL.npz from the SMPL-X v1.1 download")
+
+
+class _Declared:
+    """Pickles as a call of ``func`` on ``args``: how a hostile file declares an array it does not hold."""
+
+    def __init__(self, func, *args):
+        self.func, self.args = func, args
+
+    def __reduce__(self):
+        return self.func, self.args
+
+
+def test_arrays_a_file_declares_but_does_not_hold_are_refused_before_allocating(tmp_path):
+    """A ~200-byte pickle calling ``numpy.ndarray((10**9, 12), float32)`` (48 GB uninitialised), an array
+    reconstruction started at 10**9 elements, an object array (sized by its declared shape before its items are
+    read) and a sparse matrix declaring 10**12 dense values: each refused at once with the file named, in a few
+    MB; the arrays real pickles hold (any shape, C or Fortran order, protocol 2 or 4) still load."""
+    import time
+    import tracemalloc
+
+    from scipy import sparse
+
+    core = getattr(np, "_core", None) or np.core
+    regressor = sparse.csr_matrix(np.eye(3))
+    regressor._shape = (10**6, 10**6)  # what the file says; it holds three values
+    cases = {"ndarray": (_Declared(np.ndarray, (10**9, 12), np.dtype("float32")), "numpy.ndarray called with a shape"),
+             "reconstruct": (_Declared(core.multiarray._reconstruct, np.ndarray, (10**9,), b"b"),
+                             r"reconstruction of numpy.ndarray with shape \(1000000000,\)"),
+             "object": (np.array([1, None], dtype=object), "numpy object array"),
+             "sparse": (regressor, r"declared shape \(1000000, 1000000\) would make 1000000000000 dense values")}
+    for name, (value, message) in cases.items():
+        path = tmp_path / f"{name}.pkl"
+        path.write_bytes(pickle.dumps({"J_regressor": value}, protocol=2))
+        assert path.stat().st_size < 1000
+        tracemalloc.start()
+        start = time.monotonic()
+        with pytest.raises(ModelFileError, match=message) as err:
+            load_model_arrays(path)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert str(path) in str(err.value) and time.monotonic() - start < 1.0 and peak < 5 * 2**20, name
+    held = {"c": np.arange(24.0).reshape(2, 3, 4), "f": np.asfortranarray(np.ones((3, 2), np.float32)),
+            "i": np.array([[1, 2]], np.int64), "u": np.array([7], np.uint32), "s": np.float64(2.5)}
+    for protocol in (2, 4):
+        path = tmp_path / f"held{protocol}.pkl"
+        path.write_bytes(pickle.dumps(held, protocol=protocol))
+        loaded = load_pickle_safely(path)
+        for key, value in held.items():
+            assert np.array_equal(loaded[key], value) and np.asarray(loaded[key]).dtype == np.asarray(value).dtype

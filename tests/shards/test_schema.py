@@ -107,7 +107,7 @@ def test_token_shard_reader_refuses_other_files_naming_the_file_and_the_fix(tmp_
         "no_meta": (table.replace_schema_metadata({}), r"not an m3t token shard of version 1 \(found none\)"),
         "version_2": (table.replace_schema_metadata(meta | {b"m3t.token_schema_version": b"2"}), r"\(found 2\)"),
         "no_info": (table.replace_schema_metadata({b"m3t.token_schema_version": b"1"}), r"\(found 1\)"),
-        "no_face": (table.drop(["face"]), r"columns \['face'\] missing"),
+        "no_face": (table.drop(["face"]), r"column 'face' is missing"),
         "bad_row": (table.set_column(table.schema.get_field_index("num_frames"), "num_frames",
                                      pa.array([3, 9], pa.int32())).replace_schema_metadata(meta),
                     r"row 1 \(0-based\): clip 'c1', stream 'body': 2 tokens, expected ceil\(9 / 2\) = 5"),

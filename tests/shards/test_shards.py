@@ -504,3 +504,51 @@ def test_a_shard_damaged_after_writing_names_the_row_and_column_of_the_bad_value
         assert str(info.value) == (f"{out}: row {row} (0-based), column 'face' holds NaN or inf; the shard is damaged "
                                    "(re-run the stage that wrote it)")
         assert read_shard(out, modalities=["body"]).clips[row].clip.id == clips[row].clip.id  # other columns read
+
+
+def _retyped(table: pa.Table, name: str) -> tuple[pa.Table, pa.DataType]:
+    """``table`` with column ``name`` replaced by one of another type: int64 where anything else belongs (floats,
+    lists, text), numbers written as text where int64 belongs."""
+    field = table.schema.field(name)
+    wrong = pa.string() if field.type.equals(pa.int64()) else pa.int64()
+    values = [str(i) for i in range(table.num_rows)] if wrong == pa.string() else list(range(table.num_rows))
+    changed = table.set_column(table.schema.get_field_index(name), pa.field(name, wrong), pa.array(values, wrong))
+    return changed.replace_schema_metadata(table.schema.metadata), wrong
+
+
+@pytest.mark.parametrize("column", arrow_schema(LAYOUT).names)
+def test_a_column_of_another_type_is_refused_naming_file_column_and_both_types(tmp_path, clips, column):
+    """Every column of the shard schema: a file whose column has another Arrow type (a string where a number
+    belongs, numbers where float lists belong) is refused before any row is read, naming the file, the column,
+    the type found and the one expected, whichever modalities are asked for."""
+    table = pq.read_table(write_shard(tmp_path / "a.parquet", clips, LAYOUT))
+    damaged, wrong = _retyped(table, column)
+    out = tmp_path / "retyped.parquet"
+    pq.write_table(damaged, out)
+    for modalities in (None, ["body"]):
+        with pytest.raises(ShardFormatError) as info:
+            read_shard(out, modalities=modalities)
+        expected = arrow_schema(LAYOUT).field(column).type
+        assert str(info.value) == (f"{out}: column {column!r} is {wrong}, expected {expected}; the shard was edited "
+                                   "or not written by m3t; re-run the stage that wrote it")
+
+
+def test_a_token_shard_column_of_another_type_or_missing_is_refused_naming_it(tmp_path):
+    from m3t.shards.tokens import TokenInfo, read_token_shard, token_schema, write_token_shard
+
+    info = TokenInfo({"body": 64, "face": 8}, 4, {"body": "sha256:ab"})
+    clips = [_token_clip(1, 7, {"body": [3, 0], "face": [7, 3]}), _token_clip(2, 4, {"body": [5], "face": [0]})]
+    path = write_token_shard(tmp_path / "train.tokens.parquet", clips, info)
+    table = pq.read_table(path)
+    for column in table.schema.names:
+        damaged, wrong = _retyped(table, column)
+        out = tmp_path / f"retyped-{column}.parquet"
+        pq.write_table(damaged, out)
+        with pytest.raises(ShardFormatError) as err:
+            read_token_shard(out)
+        assert str(err.value) == (f"{out}: column {column!r} is {wrong}, expected {token_schema(info).field(column).type}"
+                                  "; the token shard was edited or not written by m3t; rerun the tokenize stage")
+    out = tmp_path / "no-face.parquet"
+    pq.write_table(table.drop_columns(["face"]).replace_schema_metadata(table.schema.metadata), out)
+    with pytest.raises(ShardFormatError, match=f"{out}: column 'face' is missing"):
+        read_token_shard(out)
