@@ -80,6 +80,19 @@ def _header(path: Path, chunk: int = 1 << 16):
             chunk *= 4
 
 
+MAX_FPS = 1000.0  # a camera's frame rate; a header above it (or 0, negative, NaN) was not written by a recorder
+
+
+def checked_fps(fps: float, source: str) -> float:
+    """The header's frame rate, refused unless finite and in (0, :data:`MAX_FPS`]: every duration, resampling
+    and DTW window derives from it."""
+    fps = float(fps)
+    if not (0.0 < fps <= MAX_FPS):  # also false for NaN
+        raise CorpusError(f"{source}: the header's frame rate is {fps}, not a camera's (0 < fps <= {MAX_FPS:g}); "
+                          "re-export the file with its real fps")
+    return fps
+
+
 def read_pose_info(path: str | Path) -> PoseInfo:
     """Header-only read of a ``.pose`` file; ``CorpusError`` naming the file when unreadable or truncated."""
     path = Path(path)
@@ -100,6 +113,9 @@ def read_pose_info(path: str | Path) -> PoseInfo:
     except (*READ_ERRORS, OSError) as exc:
         raise CorpusError(f"{path}: unreadable .pose header, truncated or not a .pose file "
                           f"({type(exc).__name__}: {exc})") from exc
+    if people == 0:
+        raise CorpusError(f"{path}: the header declares no person; re-export the file")
+    checked_fps(fps, str(path))
     actual = path.stat().st_size
     if actual < expected:
         raise CorpusError(f"{path}: truncated .pose file ({actual} bytes, the header promises {expected}: {frames} "
@@ -130,7 +146,7 @@ def pose_data(pose, source: str = "<pose>", person: int = 0) -> PoseData:
     if dims < 3:  # 2D files: z = 0 so every reader sees (T, K, 3)
         points = np.concatenate([points, np.zeros((*points.shape[:2], 3 - dims), np.float32)], -1)
     header = pose.header
-    return PoseData(points[..., :3], confidence, float(pose.body.fps),
+    return PoseData(points[..., :3], confidence, checked_fps(pose.body.fps, source),
                     tuple((c.name, len(c.points)) for c in header.components),
                     int(header.dimensions.width), int(header.dimensions.height),
                     tuple(tuple(str(p) for p in c.points) for c in header.components), min(dims, 3))

@@ -359,3 +359,28 @@ def test_pose_index_row_with_too_many_columns_is_quarantined_naming_its_id(tmp_p
     assert [c.id for c in listing.clips] == ["a"]
     assert listing.quarantined == (Quarantined("index.csv", 3, "abc", "malformed row: wrong number of columns"),
                                    Quarantined("index.csv", 4, None, "malformed row: wrong number of columns"))
+
+
+@pytest.mark.parametrize(("fps", "people", "message"), [
+    (0.0, 1, "frame rate is 0.0"), (float("nan"), 1, "frame rate is nan"), (-25.0, 1, "frame rate is -25.0"),
+    (5000.0, 1, "frame rate is 5000.0"), (25.0, 0, "no person")])
+def test_a_pose_header_with_no_frame_rate_or_no_person_is_refused_by_every_reader(tmp_path, fps, people, message):
+    """A v0.2 header stores fps, frames and people right after the components. Every duration, resampling and
+    DTW window derives from fps, so 0, NaN, negative or above a camera's rate is refused, naming the file, by the
+    header reader, the decoder and the tracker; so is a header that declares no person. The real file reads."""
+    from m3t.corpora.posefile import _header
+    from m3t.trackers.posefile import PoseFileError, load_pose_track
+
+    source = next(lexicon_root().rglob("*.pose"))
+    _, reader = _header(source)
+    raw = bytearray(source.read_bytes())
+    assert struct.unpack_from("<fIH", raw, reader.read_offset)[::2] == (25.0, 1)
+    assert read_pose(source).fps == read_pose_info(source).fps == 25.0
+    frames = struct.unpack_from("<fIH", raw, reader.read_offset)[1]
+    struct.pack_into("<fIH", raw, reader.read_offset, fps, frames, people)
+    path = tmp_path / "edited.pose"
+    path.write_bytes(bytes(raw))
+    for read in (read_pose_info, read_pose, load_pose_track):
+        with pytest.raises((CorpusError, PoseFileError), match=message) as err:
+            read(path)
+        assert str(path) in str(err.value), read.__name__
