@@ -7,18 +7,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 
 def _sweep(args: argparse.Namespace, variants: list) -> int:
     """Run ``variants`` as DVC experiments in the workspace of ``--params`` (:mod:`cli.variants`)."""
-    from cli.variants import VariantError, run_variants, tracking_env
+    from cli.variants import VariantError, run_variants, tracking_env, workspace_of
     from m3t.config import load_params
 
     params = load_params(args.params)
-    workspace = Path(args.params).resolve().parent
-    env = {} if args.dry_run else tracking_env(params.experiment, workspace)
     try:
+        workspace = workspace_of(args.params)
+        env = {} if args.dry_run else tracking_env(params.experiment, workspace)
         summary = run_variants(variants, workspace, workspace / ".m3t" / "sweeps", env=env, dry_run=args.dry_run)
     except VariantError as err:
         print(f"m3t: {err}", file=sys.stderr)

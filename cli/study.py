@@ -15,28 +15,19 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from cli.study_plan import StudyError, parse_settings, plan, select, with_settings
-from cli.variants import Runner, run_logged, run_variants, tracking_env, unflatten
+from cli.study_plan import parse_settings, plan, select, with_settings
+from cli.variants import Runner, run_logged, run_variants, tracking_env, unflatten, workspace_of
 from m3t.atomic import write_json
 from m3t.claims.report import claims_markdown, write_claims
 from m3t.config import load_params
 from m3t.experiment import fetch_runs
 
 
-def _workspace(params_path: str | Path) -> Path:
-    """The DVC workspace whose ``params.yaml`` the experiments change: the folder of ``params_path``."""
-    path = Path(params_path).resolve()
-    if path.name != "params.yaml" or not (path.parent / "dvc.yaml").is_file():
-        raise StudyError(f"{params_path}: the study runs DVC experiments on a workspace's params.yaml (beside its "
-                         "dvc.yaml); change that file, or give settings with --set KEY=VALUE")
-    return path.parent
-
-
 def study(params_path: str | Path, preset: str, seeds: Sequence[int], out: str | Path | None = None,
           dry_run: bool = False, only: Sequence[str] = (), claims: bool = True, settings: Sequence[str] = (),
           runner: Runner = run_logged) -> int:
     """``m3t study``: plan, run (or with ``dry_run`` print the commands), judge the claims; 1 when a variant failed."""
-    workspace = _workspace(params_path)
+    workspace = workspace_of(params_path)
     out = Path(out or Path("studies") / preset)
     extra = parse_settings(settings)
     params = load_params(params_path, preset=preset, overrides=unflatten(extra))  # what every variant starts from

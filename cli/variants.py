@@ -128,6 +128,16 @@ def shared_settings(workspace: Path, params_tree: Mapping, preset: str | None = 
     return out
 
 
+def workspace_of(params_path: str | Path) -> Path:
+    """The DVC workspace whose ``params.yaml`` the experiments change: the folder of ``params_path``, which must be
+    that file (the experiments read no other)."""
+    path = Path(params_path).resolve()
+    if path.name != "params.yaml" or not (path.parent / "dvc.yaml").is_file():
+        raise VariantError(f"{params_path}: m3t runs DVC experiments on a workspace's params.yaml (beside "
+                           "its dvc.yaml); change that file, or give settings with --set KEY=VALUE")
+    return path.parent
+
+
 def dvc_stages(workspace: Path) -> set[str]:
     return set(yaml.safe_load((workspace / "dvc.yaml").read_text(encoding="utf-8"))["stages"])
 
