@@ -156,8 +156,11 @@ def _check_corpora(raw: dict) -> dict:
             raise ConfigError(f"corpora.{name}.options: expected a mapping, got {type(options).__name__}")
         built = build_section(adapter_class(name).config_type, options, f"corpora.{name}.options")
         out[name] = {**entry, "options": {k: getattr(built, k) for k in options}}
-    training = (raw.get("data") or {}).get("train_corpora", section_class("data").train_corpora)
-    missing = [c for c in (training or []) if c not in out]
+    data = raw.get("data") or {}
+    training = data.get("train_corpora", section_class("data").train_corpora) if isinstance(data, dict) else ()
+    if not isinstance(training, (list, tuple)) or not all(isinstance(c, str) for c in training):
+        training = ()  # not a list of names: the data section's own check names the key
+    missing = [c for c in training if c not in out]
     if missing:
         raise ConfigError(f"data.train_corpora names {', '.join(missing)}, not listed in corpora; add "
                           f"corpora.{missing[0]} (root, options) or remove it from data.train_corpora")
@@ -237,7 +240,7 @@ def preset_overlay(preset: str) -> dict:
 
 
 def params_from_dict(raw: dict) -> Params:
-    unknown = sorted(set(raw) - set(SECTIONS))
+    unknown = sorted(map(str, set(raw) - set(SECTIONS)))  # YAML keys may be numbers or null
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}; allowed sections: {', '.join(SECTIONS)}")
     raw = {**raw, "corpora": _check_corpora(raw)}

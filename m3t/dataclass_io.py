@@ -114,7 +114,7 @@ def build_dataclass(cls: type[T], values: dict[str, Any] | None, where: str, *, 
         raise error(f"{where}: expected a mapping of keys, got {type(values).__name__}")
     allowed, hints = _fields(cls)
     known = set(allowed)
-    unknown = sorted(set(values) - known)
+    unknown = sorted(set(values) - known, key=str)  # YAML keys may be numbers or null
     if unknown and not ignore_unknown:
         raise error(f"unknown key(s) {', '.join(f'{where}.{k}' for k in unknown)}; allowed keys in '{where}': "
                     f"{', '.join(allowed)}")

@@ -98,12 +98,16 @@ class FingerspellingCorpus(CorpusAdapter):
         cfg = self.config
         path = self.root / cfg.table
         reader = csv.DictReader(io.StringIO("\n".join(read_lines(path, "Reinstall spoken-to-signed."))))
-        missing = [c for c in COLUMNS if c not in (reader.fieldnames or ())]
+        try:
+            fieldnames = reader.fieldnames or ()
+        except csv.Error as exc:
+            raise CorpusError(f"{path} line 1: not a CSV header ({exc}); expected {','.join(COLUMNS)}") from exc
+        missing = [c for c in COLUMNS if c not in fieldnames]
         if missing:
             raise CorpusError(f"{path} line 1: columns {reader.fieldnames} lack {missing}; "
                               f"expected {','.join(COLUMNS)}")
         letters, seen, counts = [], set(), {}
-        for row, r in enumerate(reader, start=2):
+        for row, r in _records(reader, path, out):
             language = (r.get("signed_language") or "").strip()
             label = counts.get(language, 0)
             counts[language] = label + 1
@@ -196,6 +200,21 @@ class FingerspellingCorpus(CorpusAdapter):
                               extra=with_kind("spelled", clip_type="spelled", frames=frames,
                                               letter_paths="|".join(c.media for c in parts))))
         return clips
+
+
+def _records(reader: csv.DictReader, path: Path, out: Collector | None):
+    """(line, record) of each row; a row the csv module cannot parse (a lone carriage return in an unquoted
+    field, a field over its size limit) is quarantined into ``out`` and the reading goes on with the next line."""
+    while True:
+        try:
+            record = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            if out is not None:
+                out.quarantine(path, reader.line_num, None, f"malformed row: not CSV ({exc})")
+            continue
+        yield reader.line_num, record
 
 
 def split_letters(word: str, letters: list[str], language: str) -> list[str]:

@@ -94,7 +94,10 @@ class Collector:
             self.quarantine(file, row, clip.id, f"duplicate media: {clip.media} is already the media of "
                                                 f"{self._media[media_key]}; listed once, under the first name")
             return False
-        problem = check(self.root / clip.media) if check is not None else None
+        try:
+            problem = check(self.root / clip.media) if check is not None else None
+        except OSError as exc:  # a name the file system refuses (longer than it allows), an unreadable folder
+            problem = f"unreadable media path ({exc.strerror or type(exc).__name__})"
         if problem is not None:
             self.quarantine(file, row, clip.id, f"{problem}: {clip.media}")
             return False

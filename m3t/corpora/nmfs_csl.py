@@ -22,6 +22,7 @@ ranges; without the list every clip's subset is ``"unknown"`` and :meth:`NmfsCsl
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import PurePosixPath
 
@@ -70,13 +71,14 @@ class NmfsCslCorpus(CorpusAdapter):
             if not line.strip():
                 continue
             parts = line.strip().split(None, 1)
+            index = _class_index(parts[0]) if len(parts) == 2 else None
             problem = None
-            if len(parts) != 2 or not parts[0].isdigit():
+            if index is None or index < 0:
                 problem = f"malformed class line {line!r}: expected '<index><tab or space><gloss>'"
-            elif int(parts[0]) in classes:
+            elif index in classes:
                 problem = f"class {parts[0]} defined twice"
             if problem is None:
-                classes[int(parts[0])] = parts[1].strip()
+                classes[index] = parts[1].strip()
             elif out is None:
                 raise CorpusError(f"{path} line {row}: {problem}. {HINT}")
             else:
@@ -95,13 +97,13 @@ class NmfsCslCorpus(CorpusAdapter):
             text = line.strip()
             if not text:
                 continue
-            problem = None
-            if not text.isdigit():
+            index, problem = _class_index(text), None
+            if index is None or index < 0:
                 problem = f"{text!r} is not a class index"
-            elif int(text) not in classes:
+            elif index not in classes:
                 problem = f"class {text} is not in {self.config.dictionary}"
             if problem is None:
-                found.add(int(text))
+                found.add(index)
             elif out is None:
                 raise CorpusError(f"{path} line {row}: {problem}. {SUBSET_HINT}")
             else:
@@ -158,10 +160,20 @@ def _list_row(line: str) -> tuple[PurePosixPath, int] | str:
     """
     text = line.strip()
     parts = text.rsplit(None, 1)
-    if len(parts) == 2 and parts[1].lstrip("-").isdigit():
-        return PurePosixPath(parts[0].replace("\\", "/")), int(parts[1])
+    label = _class_index(parts[1]) if len(parts) == 2 else None
+    if label is not None:
+        return PurePosixPath(parts[0].replace("\\", "/")), label
     video = PurePosixPath(text.replace("\\", "/"))
-    if len(video.parts) >= 2 and video.parts[0].isdigit():
-        return video, int(video.parts[0])
+    folder = _class_index(video.parts[0]) if len(video.parts) >= 2 else None
+    if folder is not None and folder >= 0:
+        return video, folder
     return (f"malformed row {line!r}: expected '<video path> <class index>' or '<class folder>/<video>' "
             "with a numeric class folder")
+
+
+def _class_index(text: str) -> int | None:
+    """The integer ``text`` writes in ASCII digits (``-`` allowed), else ``None``: ``str.isdigit`` also admits
+    ``²`` or ``١`` and ``int`` refuses ``--5`` or a number of thousands of digits, which are malformed rows here."""
+    if re.fullmatch(r"-?[0-9]{1,18}", text) is None:
+        return None
+    return int(text)

@@ -94,10 +94,19 @@ class Phoenix14TCorpus(CorpusAdapter):
             if unsafe is not None:
                 out.quarantine(path, row, name, f"{unsafe} (video column {video!r})")
                 continue
-            if folder.name == "1" and not (self.root / media).is_dir():
+            if folder.name == "1" and not _is_dir(self.root / media):
                 media = media.parent  # 2014-T: the images sit in <split>/<name>/ itself
             clip = Clip(id=name, corpus=self.name, split=split, language=cfg.language, signer=speaker or "unknown",
                         text=translation, gloss=orth, media=media.as_posix(), fps=cfg.fps,
                         extra=with_kind("frames", frame_glob=PurePosixPath(video).name, start=start, end=end,
                                         annotation=f"{out.rel(path)}:{row}"))
             out.add(clip, path, row, check, unique_media=True)
+
+
+def _is_dir(path: Path) -> bool:
+    """``path.is_dir()``, false for a name the file system refuses (a name too long): the media check then
+    quarantines the row naming the reason."""
+    try:
+        return path.is_dir()
+    except OSError:
+        return False
