@@ -14,6 +14,7 @@ import torch
 
 from m3t.arithmetic import cache_parts
 from m3t.atomic import atomic_path
+from m3t.declared import check_zip
 from m3t.digest import bytes_digest, json_digest
 
 
@@ -83,6 +84,7 @@ def read_checkpoint(path: str | os.PathLike, fmt: str, kind: str, stage: str,
     if not path.exists():
         raise FileNotFoundError(f"{kind} checkpoint {path} not found; run `dvc repro {stage}` first")
     try:
+        check_zip(path)  # torch's reader allocates each record's declared size
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # any unreadable file gets the same advice
         raise ValueError(f"{path}: not a readable {kind} checkpoint ({type(exc).__name__}: {exc}); "

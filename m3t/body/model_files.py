@@ -16,10 +16,14 @@ from __future__ import annotations
 import codecs
 import copyreg
 import pickle
+import struct
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+
+from m3t.declared import DeclaredSizeError, load_npy, open_bounded, open_npz
 
 CONVERSION_HINT = (
     "If this file cannot be read safely, convert it once in an environment that has chumpy "
@@ -100,8 +104,39 @@ def _numpy_global(name: str) -> Any:
     return table.get(name)
 
 
-class SafeModelUnpickler(pickle.Unpickler):
-    """Allow-list unpickler for body-model pickles (see the module docstring)."""
+# what a malformed pickle raises in the pure-Python unpickler (truncated: EOFError / struct.error; a stack or memo
+# that the opcodes do not fill: IndexError / KeyError; nesting: RecursionError)
+PICKLE_ERRORS = (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+                 struct.error, RecursionError)
+
+
+def _load_bytearray8(self) -> None:
+    """``BYTEARRAY8`` read through the stream (whose reads refuse a length the file cannot hold) instead of into a
+    ``bytearray`` of the declared length allocated first."""
+    (size,) = struct.unpack("<Q", self.read(8))
+    self.append(bytearray(self.read(size)))
+
+
+class SafeModelUnpickler(pickle._Unpickler):
+    """Allow-list unpickler for body-model pickles (see the module docstring).
+
+    The pure-Python unpickler: the C one allocates each string or bytes object at the length the pickle declares
+    before reading it (8 GB from a 20-byte file); this one asks the stream, which a reader opens with
+    :func:`m3t.declared.open_bounded` so that a length the file cannot hold is refused first."""
+
+    dispatch: ClassVar[dict] = {**pickle._Unpickler.dispatch, pickle.BYTEARRAY8[0]: _load_bytearray8}
+
+    def __init__(self, file, **kwargs):
+        super().__init__(file, **kwargs)
+        readline = self._file_readline
+
+        def whole_line() -> bytes:  # every line of a pickle ends in a newline: one without was cut off
+            line = readline()
+            if not line.endswith(b"\n"):
+                raise pickle.UnpicklingError("pickle data was truncated")
+            return line
+
+        self._file_readline = whole_line
 
     def find_class(self, module: str, name: str) -> Any:
         if module in ("copy_reg", "copyreg") and name == "_reconstructor":
@@ -170,13 +205,28 @@ def load_pickle_safely(path: str | Path) -> Any:
     """Unpickle ``path`` with :class:`SafeModelUnpickler` (Python-2 pickles read as latin-1)."""
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
+        with open_bounded(path) as fh:
             raw = SafeModelUnpickler(fh, encoding="latin1").load()
     except pickle.UnpicklingError as exc:
         raise ModelFileError(f"{path}: {exc}; the file was not loaded. {CONVERSION_HINT}") from exc
-    except (EOFError, ValueError, TypeError, AttributeError) as exc:
+    except PICKLE_ERRORS as exc:
         raise ModelFileError(f"{path}: not a readable model pickle ({type(exc).__name__}: {exc}). {CONVERSION_HINT}") from exc
     return _to_array(raw, "<root>", path)
+
+
+def _numpy_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` (object arrays, pickled dicts, are skipped: never unpickled, not needed) or of an
+    ``.npy`` (as ``array``), their declared sizes checked first."""
+    if path.suffix.lower() == ".npy":
+        return {"array": load_npy(path)}
+    out = {}
+    with open_npz(path) as data:
+        for key in data.files:
+            try:
+                out[key] = data[key]
+            except ValueError:  # an object array
+                continue
+    return out
 
 
 def load_model_arrays(path: str | Path, required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -186,15 +236,11 @@ def load_model_arrays(path: str | Path, required: tuple[str, ...] = ()) -> dict[
         raise ModelFileError(f"model file {path} does not exist")
     suffix = path.suffix.lower()
     out: dict[str, np.ndarray] = {}
-    if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            for key in data.files:
-                try:
-                    out[key] = data[key]
-                except ValueError:  # an object array (pickled dict): never unpickled, not needed
-                    continue
-    elif suffix == ".npy":
-        out["array"] = np.load(path, allow_pickle=False)
+    if suffix in (".npz", ".npy"):
+        try:
+            out = _numpy_arrays(path)
+        except (DeclaredSizeError, zipfile.BadZipFile, OSError, EOFError) as exc:
+            raise ModelFileError(f"{path}: not a readable model file ({exc}). {CONVERSION_HINT}") from exc
     elif suffix == ".pkl":
         raw = load_pickle_safely(path)
         if not isinstance(raw, dict):

@@ -41,6 +41,7 @@ import numpy as np
 
 from m3t.body.model_files import ModelFileError, load_model_arrays
 from m3t.body.smplfx_geometry import neck_rings, teeth_geometry
+from m3t.declared import load_npy
 
 BODY_JOINTS = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
@@ -127,7 +128,7 @@ def _eyelid_dirs(flame: dict, path: Path | None, eyes: np.ndarray) -> np.ndarray
     if path is not None:
         path = Path(path)
         if path.is_dir():
-            arrays = [np.load(path / f"{side}_eyelid.npy", allow_pickle=False) for side in ("l", "r")]
+            arrays = [load_npy(path / f"{side}_eyelid.npy") for side in ("l", "r")]
         else:
             data = load_model_arrays(path, required=("l_eyelid", "r_eyelid"))
             arrays = [data["l_eyelid"], data["r_eyelid"]]

@@ -7,13 +7,17 @@ expected and what to do.
 from __future__ import annotations
 
 import codecs
-import gzip
+import csv
+import io
 import pickle
+import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from m3t.body.model_files import SafeModelUnpickler
-from m3t.corpora.listing import CorpusError
+from m3t.body.model_files import PICKLE_ERRORS, SafeModelUnpickler
+from m3t.corpora.listing import Collector, CorpusError
+from m3t.declared import open_bounded
 
 
 # ----------------------------------------------------------------------------------------- text files
@@ -93,7 +97,7 @@ def load_data_pickle(path: Path, allow_numpy: bool, compressed: bool = False) ->
         raise CorpusError(f"{path} not found; check the corpus root and the adapter's file options")
     allowed = "builtin containers, numbers, strings" + (" and numpy arrays" if allow_numpy else "")
     try:
-        with (gzip.open(path, "rb") if compressed else open(path, "rb")) as fh:
+        with open_bounded(path, compressed) as fh:
             unpickler = CorpusUnpickler(fh, encoding="latin1" if allow_numpy else "utf-8")
             unpickler.allow_numpy = allow_numpy
             return unpickler.load()
@@ -101,5 +105,40 @@ def load_data_pickle(path: Path, allow_numpy: bool, compressed: bool = False) ->
         hint = TORCH_HINT if exc.qualname.startswith("torch") else f"Re-save it holding only {allowed}."
         raise CorpusError(f"{path}: the pickle references {exc.qualname}, a non-data class, and was refused "
                           f"(nothing was run). Allowed: {allowed}. {hint}") from exc
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, OSError) as exc:
+    except (*PICKLE_ERRORS, OSError) as exc:
         raise CorpusError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc}); re-export the file") from exc
+
+
+def csv_rows(lines: list[str], path: Path, expected: str,
+             out: Collector | None) -> tuple[tuple[str, ...], Iterator[tuple[int, dict]]]:
+    """(header, (line, record) of each row) of a CSV file's ``lines``. A header the csv module cannot parse is a
+    ``CorpusError`` naming ``path`` and the ``expected`` columns; a row it cannot parse (a lone carriage return in
+    an unquoted field, a field over the csv module's size limit) is quarantined into ``out`` and the reading goes
+    on with the next line."""
+    reader = csv.DictReader(io.StringIO("\n".join(lines)))
+    try:
+        header = tuple(reader.fieldnames or ())
+    except csv.Error as exc:
+        raise CorpusError(f"{path} line 1: not a CSV header ({exc}); expected {expected}") from exc
+    return header, _records(reader, path, out)
+
+
+def _records(reader: csv.DictReader, path: Path, out: Collector | None) -> Iterator[tuple[int, dict]]:
+    while True:
+        try:
+            record = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            if out is not None:
+                out.quarantine(path, reader.line_num, None, f"malformed row: not CSV ({exc})")
+            continue
+        yield reader.line_num, record
+
+
+def integer_field(text: str) -> int | None:
+    """The integer ``text`` writes in ASCII digits (``-`` allowed), else ``None``: ``str.isdigit`` also admits
+    ``²`` or ``١`` and ``int`` refuses ``--5`` or a number of thousands of digits, which are malformed rows here."""
+    if re.fullmatch(r"-?[0-9]{1,18}", text) is None:
+        return None
+    return int(text)

@@ -20,14 +20,12 @@ Splits are a deterministic hash of the clip id.
 """
 from __future__ import annotations
 
-import csv
-import io
 from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.annotation_files import csv_rows, read_lines
 from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
@@ -97,17 +95,14 @@ class FingerspellingCorpus(CorpusAdapter):
         """The letter rows of the table; bad rows go to ``out`` (or are skipped when ``out`` is None)."""
         cfg = self.config
         path = self.root / cfg.table
-        reader = csv.DictReader(io.StringIO("\n".join(read_lines(path, "Reinstall spoken-to-signed."))))
-        try:
-            fieldnames = reader.fieldnames or ()
-        except csv.Error as exc:
-            raise CorpusError(f"{path} line 1: not a CSV header ({exc}); expected {','.join(COLUMNS)}") from exc
+        lines = read_lines(path, "Reinstall spoken-to-signed.")
+        fieldnames, records = csv_rows(lines, path, ",".join(COLUMNS), out)
         missing = [c for c in COLUMNS if c not in fieldnames]
         if missing:
-            raise CorpusError(f"{path} line 1: columns {reader.fieldnames} lack {missing}; "
+            raise CorpusError(f"{path} line 1: columns {list(fieldnames)} lack {missing}; "
                               f"expected {','.join(COLUMNS)}")
         letters, seen, counts = [], set(), {}
-        for row, r in _records(reader, path, out):
+        for row, r in records:
             language = (r.get("signed_language") or "").strip()
             label = counts.get(language, 0)
             counts[language] = label + 1
@@ -200,21 +195,6 @@ class FingerspellingCorpus(CorpusAdapter):
                               extra=with_kind("spelled", clip_type="spelled", frames=frames,
                                               letter_paths="|".join(c.media for c in parts))))
         return clips
-
-
-def _records(reader: csv.DictReader, path: Path, out: Collector | None):
-    """(line, record) of each row; a row the csv module cannot parse (a lone carriage return in an unquoted
-    field, a field over its size limit) is quarantined into ``out`` and the reading goes on with the next line."""
-    while True:
-        try:
-            record = next(reader)
-        except StopIteration:
-            return
-        except csv.Error as exc:
-            if out is not None:
-                out.quarantine(path, reader.line_num, None, f"malformed row: not CSV ({exc})")
-            continue
-        yield reader.line_num, record
 
 
 def split_letters(word: str, letters: list[str], language: str) -> list[str]:

@@ -36,6 +36,7 @@ from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
 from m3t.corpora.splits import check_fractions, hash_split
+from m3t.declared import DeclaredSizeError, check_hdf5_dataset, open_npz
 
 FILE_STEM = "shape_pose_cam"
 FLAME_KEYS = ("exp", "jaw", "global_pose", "shape", "cam")
@@ -136,7 +137,7 @@ def read_flame_params(path: str | Path) -> dict[str, np.ndarray]:
     raw: dict[str, np.ndarray] = {}
     if path.suffix == ".npz":
         try:
-            with np.load(path, allow_pickle=False) as data:
+            with open_npz(path) as data:
                 raw = {k: np.asarray(data[k]) for k in keys if k in data.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             raise CorpusError(f"{path}: not a readable .npz ({exc}); re-export the clip") from exc
@@ -148,12 +149,23 @@ def read_flame_params(path: str | Path) -> dict[str, np.ndarray]:
                               f"{FILE_STEM}.npz with the same arrays, which needs only numpy)") from exc
         try:
             with h5py.File(path, "r") as data:
-                raw = {k: np.asarray(data[k]) for k in keys if k in data}
-        except OSError as exc:
+                raw = {k: _hdf5_array(data[k], k, path) for k in keys if k in data}
+        except (OSError, DeclaredSizeError) as exc:
             raise CorpusError(f"{path}: not a readable HDF5 file ({exc}); re-extract the clip") from exc
     else:
         raise CorpusError(f"{path}: unsupported FLAME parameter file; expected {FILE_STEM}.npz or .hdf5")
     return _checked(raw, path)
+
+
+def _hdf5_array(node, key: str, path: Path) -> np.ndarray:
+    """A dataset of numbers, its declared size checked against its storage before it is read."""
+    import h5py
+
+    if not isinstance(node, h5py.Dataset) or node.dtype.kind not in "fiub":
+        kind = f"a dataset of {node.dtype}" if isinstance(node, h5py.Dataset) else type(node).__name__
+        raise CorpusError(f"{path}: {key!r} is {kind}, not a dataset of numbers; re-extract the clip")
+    check_hdf5_dataset(node, str(path))
+    return np.asarray(node[()])
 
 
 def _frames_first(value: np.ndarray, key: str, path: Path) -> np.ndarray:

@@ -22,11 +22,10 @@ ranges; without the list every clip's subset is ``"unknown"`` and :meth:`NmfsCsl
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import PurePosixPath
 
-from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.annotation_files import integer_field, read_lines
 from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import Collector, CorpusError, Listing, media_file, with_kind
@@ -71,7 +70,7 @@ class NmfsCslCorpus(CorpusAdapter):
             if not line.strip():
                 continue
             parts = line.strip().split(None, 1)
-            index = _class_index(parts[0]) if len(parts) == 2 else None
+            index = integer_field(parts[0]) if len(parts) == 2 else None
             problem = None
             if index is None or index < 0:
                 problem = f"malformed class line {line!r}: expected '<index><tab or space><gloss>'"
@@ -97,7 +96,7 @@ class NmfsCslCorpus(CorpusAdapter):
             text = line.strip()
             if not text:
                 continue
-            index, problem = _class_index(text), None
+            index, problem = integer_field(text), None
             if index is None or index < 0:
                 problem = f"{text!r} is not a class index"
             elif index not in classes:
@@ -160,20 +159,12 @@ def _list_row(line: str) -> tuple[PurePosixPath, int] | str:
     """
     text = line.strip()
     parts = text.rsplit(None, 1)
-    label = _class_index(parts[1]) if len(parts) == 2 else None
+    label = integer_field(parts[1]) if len(parts) == 2 else None
     if label is not None:
         return PurePosixPath(parts[0].replace("\\", "/")), label
     video = PurePosixPath(text.replace("\\", "/"))
-    folder = _class_index(video.parts[0]) if len(video.parts) >= 2 else None
+    folder = integer_field(video.parts[0]) if len(video.parts) >= 2 else None
     if folder is not None and folder >= 0:
         return video, folder
     return (f"malformed row {line!r}: expected '<video path> <class index>' or '<class folder>/<video>' "
             "with a numeric class folder")
-
-
-def _class_index(text: str) -> int | None:
-    """The integer ``text`` writes in ASCII digits (``-`` allowed), else ``None``: ``str.isdigit`` also admits
-    ``²`` or ``١`` and ``int`` refuses ``--5`` or a number of thousands of digits, which are malformed rows here."""
-    if re.fullmatch(r"-?[0-9]{1,18}", text) is None:
-        return None
-    return int(text)

@@ -9,15 +9,13 @@ opened (:func:`m3t.corpora.listing.media_path_problem`).
 """
 from __future__ import annotations
 
-import csv
-import io
 import struct
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from m3t.corpora.annotation_files import read_lines
+from m3t.corpora.annotation_files import csv_rows, integer_field, read_lines
 from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
@@ -93,6 +91,20 @@ def checked_fps(fps: float, source: str) -> float:
     return fps
 
 
+def checked_header(header, source: str):
+    """The header, refused unless it declares components with points of 2 or 3 coordinates (``XYC`` / ``XYZC``):
+    pose-format sizes the body from them, and a header without points or coordinates fails there with a division
+    by zero or a reshape that names no file."""
+    components = list(header.components)
+    if not components or not sum(len(c.points) for c in components):
+        raise CorpusError(f"{source}: the header declares no points; re-export the file")
+    formats = sorted({c.format for c in components})
+    if not 2 <= header.num_dims() <= 3 or any(len(f) - 1 != header.num_dims() for f in formats):
+        raise CorpusError(f"{source}: the header's point formats {formats} are not XYC or XYZC (2 or 3 coordinates "
+                          "and a confidence, the same in every component); re-export the file")
+    return header
+
+
 def read_pose_info(path: str | Path) -> PoseInfo:
     """Header-only read of a ``.pose`` file; ``CorpusError`` naming the file when unreadable or truncated."""
     path = Path(path)
@@ -100,6 +112,7 @@ def read_pose_info(path: str | Path) -> PoseInfo:
         raise CorpusError(f"{path} not found")
     try:
         header, reader = _header(path)
+        checked_header(header, str(path))
         components = tuple((c.name, len(c.points)) for c in header.components)
         if round(header.version, 3) != 0.2:  # older layouts store no frame count: decode the body to learn it
             data = read_pose(path)
@@ -160,7 +173,10 @@ def read_pose(path: str | Path, person: int = 0) -> PoseData:
     if not path.is_file():
         raise CorpusError(f"{path} does not exist; check the corpus root")
     try:
+        checked_header(_header(path)[0], str(path))  # the body is sized from it; the body's reads are bounded
         pose = Pose.read(path.read_bytes())
+    except CorpusError:
+        raise
     except OSError as exc:
         raise CorpusError(f"{path}: cannot read ({exc})") from exc
     except (*READ_ERRORS, AssertionError, KeyError) as exc:
@@ -206,13 +222,13 @@ class PoseFileCorpus(CorpusAdapter):
             return rows
         path = self.root / cfg.index
         lines = read_lines(path, "Set corpora.posefile.index to the index CSV (relative to the root).")
-        reader = csv.DictReader(io.StringIO("\n".join(lines)))
-        missing = [c for c in INDEX_COLUMNS if c not in (reader.fieldnames or ())]
+        header, records = csv_rows(lines, path, f"{','.join(INDEX_COLUMNS)} and optional label", out)
+        missing = [c for c in INDEX_COLUMNS if c not in header]
         if missing:
-            raise CorpusError(f"{path} line 1: columns {reader.fieldnames} lack {missing}; expected "
+            raise CorpusError(f"{path} line 1: columns {list(header)} lack {missing}; expected "
                               f"{','.join(INDEX_COLUMNS)} and optional label")
         rows = []
-        for row, record in enumerate(reader, start=2):
+        for row, record in records:
             if None in record or any(record.get(c) is None for c in INDEX_COLUMNS):
                 out.quarantine(path, row, record.get("id") or None, "malformed row: wrong number of columns")
                 continue
@@ -230,7 +246,7 @@ class PoseFileCorpus(CorpusAdapter):
                 out.quarantine(file, row, clip_id, f"split {r['split']!r} unknown; expected one of {', '.join(SPLITS)}")
                 continue
             label = r.get("label") or None
-            if label is not None and not label.lstrip("-").isdigit():
+            if label is not None and integer_field(label) is None:
                 out.quarantine(file, row, clip_id, f"label {label!r} is not an integer")
                 continue
             unsafe = out.media_problem(r["path"])
@@ -238,11 +254,14 @@ class PoseFileCorpus(CorpusAdapter):
                 out.quarantine(file, row, clip_id, unsafe)
                 continue
             media = self.root / r["path"]
-            if not media.is_file():
-                out.quarantine(file, row, clip_id, f"missing media: {r['path']}")
-                continue
             try:
+                if not media.is_file():
+                    out.quarantine(file, row, clip_id, f"missing media: {r['path']}")
+                    continue
                 info = read_pose_info(media)
+            except OSError as exc:  # a name the file system refuses (longer than it allows)
+                out.quarantine(file, row, clip_id, f"unreadable media path ({exc.strerror or exc})")
+                continue
             except CorpusError as exc:
                 out.quarantine(file, row, clip_id, str(exc).replace(str(media), r["path"]))
                 continue

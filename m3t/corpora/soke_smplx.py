@@ -21,15 +21,13 @@ option records for the import (:mod:`m3t.fitting.imports`). The split folder ``v
 """
 from __future__ import annotations
 
-import csv
-import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from m3t.corpora.annotation_files import load_data_pickle, read_lines
+from m3t.corpora.annotation_files import csv_rows, load_data_pickle, read_lines
 from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import (
@@ -168,12 +166,12 @@ class SokeSmplxCorpus(CorpusAdapter):
             raise CorpusError(f"corpora.soke_smplx.annotation: {unsafe}")
         lines = read_lines(path, "Set corpora.soke_smplx.annotation to a CSV with columns "
                                  "id,text[,gloss,signer,language,split].")
-        reader = csv.DictReader(io.StringIO("\n".join(lines)))
-        if not {"id", "text"} <= set(reader.fieldnames or ()):
-            raise CorpusError(f"{path} line 1: columns {reader.fieldnames}; expected at least id,text "
-                              f"(optional gloss,signer,language,split)")
+        expected = "at least id,text (optional gloss,signer,language,split)"
+        header, records = csv_rows(lines, path, expected, out)
+        if not {"id", "text"} <= set(header):
+            raise CorpusError(f"{path} line 1: columns {list(header)}; expected {expected}")
         rows: dict[str, dict[str, str]] = {}
-        for row, record in enumerate(reader, start=2):
+        for row, record in records:
             clip_id = (record.get("id") or "").strip()
             if not clip_id or None in record:
                 out.quarantine(path, row, clip_id or None, "malformed row: empty id or extra columns")

@@ -23,6 +23,7 @@ from m3t.corpora.base import CorpusAdapter
 from m3t.corpora.clip import Clip
 from m3t.corpora.listing import Listing, with_kind
 from m3t.dataclass_io import build_dataclass
+from m3t.declared import open_npz
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,7 @@ class SyntheticCorpus:
         if not path.exists():
             raise FileNotFoundError(f"motion file {path} of clip {clip.id} is missing; regenerate the corpus")
         try:
-            with np.load(path, allow_pickle=False) as data:
+            with open_npz(path) as data:
                 params = {k.removeprefix("param__"): data[k] for k in data.files if k.startswith("param__")}
                 identity, camera = data["identity"], Camera.from_dict(json.loads(str(data["camera"])))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from m3t.atomic import atomic_path
+from m3t.declared import open_npz
 
 MEDIAPIPE_HOLISTIC_PARTS = {"pose": 33, "left_hand": 21, "right_hand": 21, "face": 468}
 
@@ -98,7 +99,7 @@ def load_track(path: str | Path) -> Track:
     if not path.exists():
         raise TrackError(f"track file {path} does not exist; run the tracking step for this clip first")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with open_npz(path) as data:
             fields = {k: data[k] for k in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise TrackError(f"track file {path} is unreadable ({exc}); delete it and re-run tracking") from exc

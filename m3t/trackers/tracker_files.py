@@ -18,6 +18,7 @@ import torch
 
 from m3t.body.model_files import ModelFileError, load_pickle_safely
 from m3t.body.rotations import matrix_to_6d
+from m3t.declared import check_zip, open_npz
 
 
 class TrackerFileError(ValueError):
@@ -41,9 +42,10 @@ def load_tracker_file(path: str | Path) -> dict[str, Any]:
     suffix = path.suffix.lower()
     try:
         if suffix == ".npz":
-            with np.load(path, allow_pickle=False) as data:
+            with open_npz(path) as data:
                 return {k: data[k] for k in data.files}
         if suffix in (".pt", ".pth", ".frame"):
+            check_zip(path)  # torch's reader allocates each record's declared size
             with torch.serialization.safe_globals(_numpy_safe_globals()):
                 out = torch.load(path, map_location="cpu", weights_only=True)
         elif suffix == ".pkl":

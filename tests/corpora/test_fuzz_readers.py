@@ -345,7 +345,8 @@ def pose_index(trees):
     return trees / "pose", open_corpus("posefile", trees / "pose", index="index.csv").listing()
 
 
-POSE_INDEX_REPRODUCTIONS = {  # rows appended to build_pose_collection's index.csv; each one raises
+# rows the fuzz found raising csv.Error, ValueError and OSError from the index readers, kept as fixed examples
+POSE_INDEX_REPRODUCTIONS = {
     "lone carriage return (csv.Error)": "z,poses/a\rb.pose,train,A,ase,s0,1",
     "field over 128 KiB (csv.Error)": "z,poses/" + "x" * 131072 + ".pose,train,A,ase,s0,1",
     "label --5 (ValueError)": "z,poses/ase_0.pose,train,A,ase,s0,--5",
@@ -354,8 +355,40 @@ POSE_INDEX_REPRODUCTIONS = {  # rows appended to build_pose_collection's index.c
 }
 
 
-@pytest.mark.xfail(strict=False, reason="m3t/corpora/posefile.py lets csv.Error, ValueError and OSError through "
-                                        "for the rows of POSE_INDEX_REPRODUCTIONS")
+@pytest.mark.parametrize("row", list(POSE_INDEX_REPRODUCTIONS.values()), ids=list(POSE_INDEX_REPRODUCTIONS))
+def test_pose_index_rows_the_fuzz_found_are_quarantined(pose_index, row):
+    """Each row once found raising from the index reader is now one quarantine line naming ``index.csv``, and
+    every clip listed before is still listed."""
+    root, before = pose_index
+    path = root / "index.csv"
+    original = path.read_bytes()
+    try:
+        path.write_bytes(original.rstrip(b"\n") + b"\n" + row.encode("utf-8") + b"\n")
+        got = open_corpus("posefile", root, index="index.csv").listing()
+    finally:
+        path.write_bytes(original)
+    assert [c.id for c in got.clips] == [c.id for c in before.clips]
+    new = [q for q in got.quarantined if q not in before.quarantined]
+    assert len(new) == 1 and new[0].file == "index.csv" and new[0].reason, new
+
+
+@pytest.mark.parametrize("row", ["q1,a\rb,G,s0", "q1," + "x" * 200_000 + ",G,s0"], ids=["carriage-return", "huge-field"])
+def test_soke_annotation_rows_the_csv_module_cannot_parse_are_quarantined(soke, row):
+    """SOKE's annotation CSV with a row the csv module refuses: one quarantine line naming the file, the rest
+    read (the same reader as the index's and the fingerspelling table's)."""
+    root, before = soke
+    path = root / "annotation.csv"
+    original = path.read_bytes()
+    try:
+        path.write_bytes(original.rstrip(b"\n") + b"\n" + row.encode("utf-8") + b"\n")
+        got = open_corpus("soke_smplx", root, annotation="annotation.csv").listing()
+    finally:
+        path.write_bytes(original)
+    assert [c.id for c in got.clips] == [c.id for c in before.clips]
+    new = [q for q in got.quarantined if q not in before.quarantined]
+    assert len(new) == 1 and new[0].file == "annotation.csv" and "not CSV" in new[0].reason, new
+
+
 @given(data=st.data())
 @fuzz(60)
 def test_pose_index_csv(pose_index, data):

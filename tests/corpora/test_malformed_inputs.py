@@ -1,7 +1,9 @@
 """Malformed inputs of every adapter and reader end in a quarantine line or a clear error, never a traceback.
 
 The case table is :data:`malformed_cases.CASES` (each case builds a published layout from :mod:`corpus_fixtures`
-and breaks one thing); ``benchmarks/malformed_report.py`` writes the same table as markdown.
+and breaks one thing) plus :data:`hostile_cases.CASES` (files declaring more than they hold, bombs, wrong column
+types, hostile headers); ``benchmarks/malformed_report.py`` writes the same table as markdown, with each case's
+time and peak memory.
 """
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import collections
 
 import pytest
 import torch
+from hostile_cases import CASES as HOSTILE
 from malformed_cases import CASES, CLEAR, QUARANTINED, READ, classify
 
 
@@ -22,7 +25,7 @@ def one_thread():
 
 @pytest.mark.parametrize("case", [
     pytest.param(c, id=c.id, marks=[pytest.mark.xfail(strict=True, reason=c.gap)] if c.gap else [])
-    for c in CASES])
+    for c in CASES + HOSTILE])
 def test_malformed_input(case, tmp_path):
     outcome, message = classify(case, tmp_path)
     assert outcome == case.expect, f"{case.id} ({case.reader}, {case.input}): {outcome}: {message}"
@@ -44,6 +47,54 @@ def test_the_table_covers_the_issue():
         assert kind in ids, kind
     assert {c.expect for c in CASES} == {QUARANTINED, CLEAR, READ}
     assert all(c.file and c.reason for c in CASES if c.expect != READ)
+
+
+def test_the_hostile_table_covers_the_issue():
+    """>= 25 hostile cases: bombs by declaration, compression and aliasing in every container the readers open
+    (zip / npz / npy, torch checkpoints, HDF5, gzip and plain pickles, params.yaml), a wrong Arrow type in every
+    column of both table formats, and hostile ``.pose`` headers; ids unique across both tables."""
+    import malformed_cases
+
+    from m3t.shards.schema import arrow_schema
+    from m3t.shards.tokens import TokenInfo, token_schema
+
+    assert len(HOSTILE) >= 25 and len({c.id for c in CASES + HOSTILE}) == len(CASES) + len(HOSTILE)
+    ids = " ".join(c.id for c in HOSTILE)
+    for kind in ("declares", "zip-bomb", "npz-bomb", "gzip-bomb", "fill-bomb", "compressed-bomb", "alias-bomb",
+                 "forged", "pose-header", "wrong-type"):
+        assert kind in ids, kind
+    for reader in ("track", "load_model_arrays", "read_checkpoint", "NLF", "slt_pickle", "mead", "load_params",
+                   "posefile", "read_shard", "read_token_shard"):
+        assert any(c.reader.startswith(reader) for c in HOSTILE), reader
+    for name in arrow_schema(malformed_cases._layout()).names:
+        assert f"shard-wrong-type-{name}" in ids, name
+    for name in token_schema(TokenInfo({"body": 16, "face": 8}, 4, {})).names:
+        assert f"tokens-wrong-type-{name}" in ids, name
+
+
+@pytest.mark.parametrize("case", [c for c in HOSTILE if "wrong-type" not in c.id], ids=lambda c: c.id)
+def test_a_hostile_file_is_refused_without_allocating_what_it_declares(case, tmp_path):
+    """What a case declares is 64 MB to 400 GB; its refusal allocates under 48 MB (Python and numpy allocations,
+    traced; the modules a reader imports are imported first, since importing them allocates tens of MB once)."""
+    import tracemalloc
+
+    import h5py  # noqa: F401
+    import pose_format  # noqa: F401
+    import pyarrow.parquet  # noqa: F401
+
+    import m3t.config
+    import m3t.corpora.base
+    import m3t.shards.tokens
+    import m3t.trackers.nlf_reader  # noqa: F401
+
+    tracemalloc.start()
+    try:
+        outcome, message = classify(case, tmp_path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert outcome == case.expect, message
+    assert peak < 48 * 2**20, f"{case.id}: {peak / 2**20:.1f} MB traced"
 
 
 def test_classify_tells_the_outcomes_apart(tmp_path):

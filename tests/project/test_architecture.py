@@ -22,7 +22,7 @@ from tools.code_deps import DVC_YAML, ROOT, code_deps, imports, is_code, modules
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment", "m3t.dataclass_io",
               "m3t.reporting", "m3t.digest", "m3t.optimizer", "m3t.checkpoints", "m3t.training_jobs",
-              "m3t.positional_encoding", "m3t.vocabulary")),
+              "m3t.positional_encoding", "m3t.vocabulary", "m3t.declared")),
     ("body", ("m3t.body",)),
     ("corpora", ("m3t.corpora",)),
     ("trackers", ("m3t.trackers",)),
