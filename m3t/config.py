@@ -179,6 +179,32 @@ MAX_NODES_ENV = "M3T_YAML_MAX_NODES"
 MAX_NODES = 1_000_000  # values a params file may hold once its aliases are expanded (params.yaml holds ~1,000)
 MAX_BYTES_ENV = "M3T_YAML_MAX_BYTES"
 MAX_BYTES = 16 * 2**20  # a params file's size (params.yaml is ~20 kB)
+MAX_DEPTH_ENV = "M3T_YAML_MAX_DEPTH"
+MAX_DEPTH = 100  # nested collections (params.yaml nests 4 deep); PyYAML's scanner slows with depth, then recursion ends it
+
+
+class _TooDeep(Exception):
+    pass
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that stops composing past ``max_depth`` nested collections (a file of 50,000 nested
+    lists otherwise costs seconds of scanning before Python's recursion limit ends it)."""
+
+    max_depth = MAX_DEPTH
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self.depth = 0
+
+    def compose_node(self, parent, index):
+        self.depth += 1
+        try:
+            if self.depth > self.max_depth:
+                raise _TooDeep
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
 
 
 def _expanded_nodes(node: yaml.Node, memo: dict[int, int]) -> int:
@@ -198,7 +224,8 @@ def safe_yaml(text: str, where: str | Path) -> object:
     """``yaml.safe_load`` with the expansion of aliases bounded: a file whose aliases would expand to more than
     ``M3T_YAML_MAX_NODES`` values (default :data:`MAX_NODES`) is refused before anything is built."""
     limit = int(os.environ.get(MAX_NODES_ENV) or MAX_NODES)
-    loader = yaml.SafeLoader(text)
+    loader = _BoundedLoader(text)
+    loader.max_depth = int(os.environ.get(MAX_DEPTH_ENV) or MAX_DEPTH)
     try:
         node = loader.get_single_node()
         if node is None:
@@ -208,8 +235,9 @@ def safe_yaml(text: str, where: str | Path) -> object:
             raise ConfigError(f"{where}: its aliases expand to {nodes:,} values, more than {limit:,} (a YAML alias "
                               f"bomb?); a legitimately large file: raise {MAX_NODES_ENV}")
         return loader.construct_document(node)
-    except RecursionError:
-        raise ConfigError(f"{where}: nested too deeply to read") from None
+    except (RecursionError, _TooDeep):
+        raise ConfigError(f"{where}: nested too deeply to read (more than {loader.max_depth} levels); a legitimately "
+                          f"deep file: raise {MAX_DEPTH_ENV}") from None
     finally:
         loader.dispose()
 

@@ -19,7 +19,10 @@ import io
 import pickle
 import struct
 import zipfile
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import malformed_cases as mc
 import numpy as np
@@ -93,7 +96,8 @@ def track_npy_declares(tmp: Path):
     path, arrays = track_archive(tmp)
     members = {f"{k}.npy": npy_bytes(v) for k, v in arrays.items()}
     members["keypoints.npy"] = npy_header((10**6, 543, 2)) + bytes(24)
-    return load_track(write_zip(path, members))
+    write_zip(path, members)
+    return lambda: load_track(path)
 
 
 def track_zip_bomb(tmp: Path):
@@ -101,7 +105,7 @@ def track_zip_bomb(tmp: Path):
     path, arrays = track_archive(tmp)
     write_zip(path, {f"{k}.npy": npy_bytes(v) for k, v in arrays.items() if k != "keypoints"})
     deflated_zeros(path, "keypoints.npy", 64 * 2**20, npy_header((16 * 2**20,)))
-    return load_track(path)
+    return lambda: load_track(path)
 
 
 def track_forged_directory(tmp: Path):
@@ -109,7 +113,7 @@ def track_forged_directory(tmp: Path):
     path, arrays = track_archive(tmp)
     write_zip(path, {f"{k}.npy": npy_bytes(v) for k, v in arrays.items()})
     forge_size(path, "keypoints.npy", 2 * GIB)
-    return load_track(path)
+    return lambda: load_track(path)
 
 
 def track_npy_garbage_header(tmp: Path):
@@ -118,7 +122,8 @@ def track_npy_garbage_header(tmp: Path):
     members = {f"{k}.npy": npy_bytes(v) for k, v in arrays.items()}
     text = b"{'descr': os.system('x'), 'fortran_order': False, 'shape': (3,), }"
     members["confidence.npy"] = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text) + 1) + text + b"\n"
-    return load_track(write_zip(path, members))
+    write_zip(path, members)
+    return lambda: load_track(path)
 
 
 def model_npy_declares(tmp: Path):
@@ -127,7 +132,7 @@ def model_npy_declares(tmp: Path):
 
     path = tmp / "l_eyelid.npy"
     path.write_bytes(npy_header((10**10,), "<f8") + bytes(64))
-    return load_model_arrays(path)
+    return lambda: load_model_arrays(path)
 
 
 def model_pickle_declares(tmp: Path):
@@ -137,7 +142,7 @@ def model_pickle_declares(tmp: Path):
 
     path = tmp / "SMPLX_NEUTRAL.pkl"
     path.write_bytes(b"\x80\x04\x8e" + struct.pack("<Q", 8 * 10**9) + b"abc")
-    return load_model_arrays(path)
+    return lambda: load_model_arrays(path)
 
 
 def model_npz_bomb(tmp: Path):
@@ -146,7 +151,7 @@ def model_npz_bomb(tmp: Path):
 
     path = write_zip(tmp / "SMPLX_NEUTRAL.npz", {"v_template.npy": npy_bytes(np.zeros((4, 3)))}, deflate=True)
     deflated_zeros(path, "shapedirs.npy", 64 * 2**20, npy_header((8 * 2**20,), "<f8"))
-    return load_model_arrays(path)
+    return lambda: load_model_arrays(path)
 
 
 def _checkpoint(tmp: Path) -> Path:
@@ -168,14 +173,14 @@ def checkpoint_forged_record(tmp: Path):
     the declared size of a record before reading it)."""
     path = _checkpoint(tmp)
     forge_size(path, "data/0", 4_000_000_000)
-    return read_tokenizer(path)
+    return lambda: read_tokenizer(path)
 
 
 def checkpoint_deflated_member(tmp: Path):
     """A checkpoint with one more record: 64 MB of zeros deflated to ~64 kB."""
     path = _checkpoint(tmp)
     deflated_zeros(path, "tokenizer/data/1", 64 * 2**20)
-    return read_tokenizer(path)
+    return lambda: read_tokenizer(path)
 
 
 def nlf_forged_record(tmp: Path):
@@ -187,7 +192,7 @@ def nlf_forged_record(tmp: Path):
     path = tmp / "clip.nlf.pt"
     torch.save({"pose": torch.zeros(2, 165), "betas": torch.zeros(2, 10), "trans": torch.zeros(2, 3)}, path)
     forge_size(path, "data/0", 4_000_000_000)
-    return read_nlf(path)
+    return lambda: read_nlf(path)
 
 
 def zip_member_past_end(tmp: Path):
@@ -199,7 +204,7 @@ def zip_member_past_end(tmp: Path):
     at = data.find(b"PK\x01\x02")
     struct.pack_into("<I", data, at + 42, len(data))  # the first member's local header offset: past the end
     path.write_bytes(bytes(data))
-    return load_track(path)
+    return lambda: load_track(path)
 
 
 # ----------------------------------------------------------------------------------------- gzip pickles
@@ -229,14 +234,14 @@ def slt_gzip_bomb(tmp: Path):
     """An slt split file whose pickle holds 300 MB of zero bytes: 0.3 MB gzip-compressed."""
     root = mc.slt_entry(tmp, listing=False)
     gzip_pickle_bomb(root / mc.SLT_TRAIN)
-    return mc.listed("slt_pickle", root, 7)
+    return lambda: mc.listed("slt_pickle", root, 7)
 
 
 def slt_gzip_forged_trailer(tmp: Path):
     """The same bomb with gzip's size trailer rewritten to 100 bytes: refused while streaming instead."""
     root = mc.slt_entry(tmp, listing=False)
     gzip_pickle_bomb(root / mc.SLT_TRAIN, trailer=100)
-    return mc.listed("slt_pickle", root, 7)
+    return lambda: mc.listed("slt_pickle", root, 7)
 
 
 class _Calls:
@@ -249,31 +254,47 @@ class _Calls:
         return self.func, self.args
 
 
+def _slt_sign(tmp: Path, sign):
+    root = mc.slt_entry(tmp, {"name": "train/odd", "signer": "s", "gloss": "G", "text": "t", "sign": sign}, listing=False)
+    return lambda: mc.listed("slt_pickle", root, 7)
+
+
 def slt_ndarray_shape(tmp: Path):
     """A record whose ``sign`` is ``numpy.ndarray((10**9, 12), float32)``: 48 GB, uninitialised."""
-    return mc.slt_sign(_Calls(np.ndarray, (10**9, 12), np.dtype("float32")))(tmp)
+    return _slt_sign(tmp, _Calls(np.ndarray, (10**9, 12), np.dtype("float32")))
 
 
 def slt_reconstruct_shape(tmp: Path):
     """A record whose ``sign`` is numpy's pickle reconstruction of an array started at 10**9 elements."""
     core = getattr(np, "_core", None) or np.core
-    return mc.slt_sign(_Calls(core.multiarray._reconstruct, np.ndarray, (10**9,), b"b"))(tmp)
+    return _slt_sign(tmp, _Calls(core.multiarray._reconstruct, np.ndarray, (10**9,), b"b"))
 
 
 # ----------------------------------------------------------------------------------------- HDF5 (MEAD)
-def _mead(tmp: Path, write) -> object:
-    """The released MEAD tree (:func:`corpus_fixtures.build_mead_release`) whose clip W009/front/x/level_1/001 is
-    the file ``write(h5py.File)`` makes beside the release's other arrays; read as fit-corpus reads it."""
+def _mead(tmp: Path, write):
+    """The released MEAD tree (:func:`corpus_fixtures.build_mead_release`) plus clip W009/front/x/level_1/001, a
+    file ``write(h5py.File)`` makes beside the release's other arrays; read as fit-corpus reads it."""
     import corpus_fixtures as fx
     import h5py
 
-    path = tmp / "made.hdf5"
+    root, where = tmp / "mead", "W009/front/x/level_1/001"
+    fx.build_mead_release(root)
+    path = root / where / "shape_pose_cam.hdf5"
+    path.parent.mkdir(parents=True)
     with h5py.File(path, "w") as f:
         for key, value in fx.flame_arrays(4, exp=100, shape=300, batch_axis=True).items():
             if key != "exp":
                 f.create_dataset(key, data=value)
         write(f)
-    return mc.mead_clip(raw=path.read_bytes())(tmp)
+    return lambda: _mead_source(root, where)
+
+
+def _mead_source(root: Path, where: str):
+    from m3t.corpora.base import open_corpus
+
+    corpus = open_corpus("mead", root)
+    clip = next(c for c in corpus.listing().clips if c.media.startswith(where))
+    return corpus.source(clip)
 
 
 def mead_fill_bomb(tmp: Path):
@@ -304,7 +325,7 @@ def params_text(tmp: Path, text: str):
 
     path = tmp / "params.yaml"
     path.write_text(text, encoding="utf-8")
-    return load_params(path)
+    return lambda: load_params(path)
 
 
 def params_known_value(tmp: Path, value: str):
@@ -341,7 +362,7 @@ def params_huge(tmp: Path):
     with open(path, "w", encoding="utf-8") as fh:
         fh.write((mc.ROOT / "params.yaml").read_text(encoding="utf-8") + "#")
         fh.writelines("x" * 2**20 for _ in range(17))
-    return load_params(path)
+    return lambda: load_params(path)
 
 
 # ----------------------------------------------------------------------------------------- .pose headers
@@ -370,7 +391,7 @@ def pose_rewritten(change, body: bool = True):
         PoseHeader.write(header, buffer)
         path = tmp / "clip.pose"
         path.write_bytes(buffer.getvalue() + rest)
-        return read_pose(path)
+        return lambda: read_pose(path)
 
     return run
 
@@ -388,7 +409,7 @@ def pose_body_field(offset: int, fmt: str, value):
         struct.pack_into(fmt, data, reader.read_offset + offset, value)
         path = tmp / "clip.pose"
         path.write_bytes(bytes(data))
-        return read_pose_info(path)
+        return lambda: read_pose_info(path)
 
     return run
 
@@ -425,17 +446,21 @@ def shard_wrong_type(column: str):
         path = mc.shard(tmp)
         mc.rewrite(path, lambda t: t.set_column(t.schema.get_field_index(column), column,
                                                 _wrong_array(t.schema.field(column), t.num_rows)))
-        return read_shard(path)
+        return lambda: read_shard(path)
 
     return run
 
 
 def token_wrong_type(column: str):
-    def change(table):
-        return table.set_column(table.schema.get_field_index(column), column,
-                                _wrong_array(table.schema.field(column), table.num_rows))
+    def build(tmp: Path):
+        from m3t.shards.tokens import read_token_shard
 
-    return mc.token_case(change)
+        path = mc.token_shard(tmp)
+        mc.rewrite(path, lambda t: t.set_column(t.schema.get_field_index(column), column,
+                                                _wrong_array(t.schema.field(column), t.num_rows)))
+        return lambda: read_token_shard(path)
+
+    return build
 
 
 def _columns(schema_of) -> list[str]:
@@ -455,7 +480,21 @@ def _token_columns():
 
 
 # ----------------------------------------------------------------------------------------- the table
-CASES: tuple[Case, ...] = (
+# Each builder above writes its input into the case's folder and returns the read (a callable); the case's
+# ``build`` runs the builder, its ``run`` the read, so the report measures the read alone.
+_PENDING: dict[Path, Callable[[], Any]] = {}
+
+
+def _read_pending(tmp: Path):
+    return _PENDING.pop(tmp)()
+
+
+def _staged(case: Case) -> Case:
+    builder = case.run
+    return replace(case, run=_read_pending, build=lambda tmp: _PENDING.__setitem__(tmp, builder(tmp)))
+
+
+_CASES: tuple[Case, ...] = (
     # declared by an archive's directory or an array header
     Case("track-npy-declares-4gb", "track (npz)", "keypoints.npy header declares (10^6, 543, 2) over 24 bytes",
          track_npy_declares, CLEAR, "clip.track.npz", "declares 4,344,000,000 bytes"),
@@ -527,3 +566,4 @@ CASES: tuple[Case, ...] = (
            token_wrong_type(name), CLEAR, "train.tokens.parquet", f"column {name!r} is")
       for name in _columns(_token_columns)),
 )
+CASES: tuple[Case, ...] = tuple(_staged(case) for case in _CASES)

@@ -56,7 +56,8 @@ class Read:
 class Case:
     """``file`` / ``reason``: fragments the quarantine entry or error message must hold; ``row``: the quarantine
     entry's row (``None``: not checked); ``clip``: the clip id the entry names (``None``: not checked). ``gap``: a
-    defect in a file this suite may not fix (the test xfails)."""
+    defect in a file this suite may not fix (the test xfails). ``build``: writes the input into the case's folder
+    before ``run`` reads it (the report times and measures ``run`` alone); without it ``run`` does both."""
 
     id: str
     reader: str
@@ -68,10 +69,13 @@ class Case:
     row: int | None = None
     gap: str = ""
     clip: str | None = None
+    build: Callable[[Path], Any] | None = None
 
 
-def classify(case: Case, tmp: Path) -> tuple[str, str]:
-    """(outcome, message) of running ``case`` in the empty folder ``tmp``."""
+def classify(case: Case, tmp: Path, built: bool = False) -> tuple[str, str]:
+    """(outcome, message) of running ``case`` in the empty folder ``tmp`` (``built``: its ``build`` has run)."""
+    if case.build is not None and not built:
+        case.build(tmp)
     outcome, message = _classify(case, tmp)
     return outcome, message.replace(str(tmp), "<tmp>")
 

@@ -22,7 +22,9 @@ from m3t.corpora.listing import Collector, CorpusError, Listing, with_kind
 from m3t.corpora.splits import SPLITS, check_fractions, hash_split
 
 INDEX_COLUMNS = ("id", "path", "split", "text", "language", "signer")
-READ_ERRORS = (struct.error, ValueError, TypeError, EOFError, IndexError, NotImplementedError, UnicodeDecodeError)
+# ZeroDivisionError: pose-format's v0.1 reader divides by the people count its body declares
+READ_ERRORS = (struct.error, ValueError, TypeError, EOFError, IndexError, NotImplementedError, UnicodeDecodeError,
+               ZeroDivisionError)
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,8 @@ def test_the_hostile_table_covers_the_issue():
 @pytest.mark.parametrize("case", [c for c in HOSTILE if "wrong-type" not in c.id], ids=lambda c: c.id)
 def test_a_hostile_file_is_refused_without_allocating_what_it_declares(case, tmp_path):
     """What a case declares is 64 MB to 400 GB; its refusal allocates under 48 MB (Python and numpy allocations,
-    traced; the modules a reader imports are imported first, since importing them allocates tens of MB once)."""
+    traced from after the input is written; the modules a reader imports are imported first, since importing them
+    allocates tens of MB once)."""
     import tracemalloc
 
     import h5py  # noqa: F401
@@ -87,9 +88,10 @@ def test_a_hostile_file_is_refused_without_allocating_what_it_declares(case, tmp
     import m3t.shards.tokens
     import m3t.trackers.nlf_reader  # noqa: F401
 
+    case.build(tmp_path)
     tracemalloc.start()
     try:
-        outcome, message = classify(case, tmp_path)
+        outcome, message = classify(case, tmp_path, built=True)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -139,10 +141,15 @@ def test_report_writes_the_table(tmp_path, monkeypatch):
     spec.loader.exec_module(report)
     few = tuple(c for c in CASES if c.id in ("phoenix-wrong-header", "track-fps-zero", "params-bad-yaml"))
     monkeypatch.setattr(report, "CASES", few)
+    monkeypatch.setattr(report, "HOSTILE", tuple(c for c in HOSTILE if c.id == "track-npy-declares-4gb"))
     assert malformed_cases.CASES is CASES
     code = report.main(["--out", str(tmp_path / "table.md")])
     text = (tmp_path / "table.md").read_text(encoding="utf-8")
-    assert "| case | reader | input | outcome | message |" in text
+    assert "| case | reader | input | outcome | s | traced MB | RSS MB | message |" in text
     assert "| phoenix-wrong-header | phoenix14t |" in text and "| clear error |" in text
     assert "| params-bad-yaml | " in text and "TRACEBACK" not in text
     assert code == 0 and str(tmp_path) not in text.replace(str(tmp_path / "table.md"), "")
+    row = next(line for line in text.splitlines() if line.startswith("| track-npy-declares-4gb |"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells[3] == "clear error" and float(cells[4]) >= 0 and float(cells[5]) < 48  # declared: 4.3 GB
+    assert "4 cases (4 clear error)" in text
