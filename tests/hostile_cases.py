@@ -479,6 +479,31 @@ def _token_columns():
     return token_schema(TokenInfo({"body": 16, "face": 8}, 4, {}))
 
 
+# ----------------------------------------------------------------------------------------- frame images
+def frame_declares(kind: str):
+    """A frame image whose header declares more pixels than any camera gives, the pixel data absent: a PNG whose
+    IHDR chunk (PNG spec 11.2.2: width, height, bit depth, colour type...) says 30,000 x 30,000 RGB, or a JPEG whose
+    SOF0 segment (ITU T.81 B.2.2: precision, height, width, components) says 65,000 x 65,000."""
+
+    def build(tmp: Path):
+        import zlib
+
+        from m3t.trackers.media import read_image_rgb
+
+        if kind == "png":
+            ihdr = struct.pack(">IIBBBBB", 30_000, 30_000, 8, 2, 0, 0, 0)
+            data = (b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr
+                    + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr)) + bytes(64))
+        else:
+            sof = struct.pack(">BHHB", 8, 65_000, 65_000, 3) + b"\x01\x11\x00\x02\x11\x01\x03\x11\x01"
+            data = b"\xff\xd8\xff\xc0" + struct.pack(">H", len(sof) + 2) + sof + bytes(64)
+        path = tmp / f"00001.{kind}"
+        path.write_bytes(data)
+        return lambda: read_image_rgb(path)
+
+    return build
+
+
 # ----------------------------------------------------------------------------------------- the table
 # Each builder above writes its input into the case's folder and returns the read (a callable); the case's
 # ``build`` runs the builder, its ``run`` the read, so the report measures the read alone.
@@ -534,6 +559,11 @@ _CASES: tuple[Case, ...] = (
          CLEAR, "shape_pose_cam.hdf5", "compression bomb"),
     Case("mead-hdf5-wrong-type-group", "mead source", "exp a group, not a dataset", mead_group, CLEAR,
          "shape_pose_cam.hdf5", "'exp' is Group, not a dataset"),
+    # frame images
+    Case("frame-png-declares-900mp", "read_image_rgb", "PNG header declaring 30,000 x 30,000, no pixel data",
+         frame_declares("png"), CLEAR, "00001.png", "declares 30000x30000 pixels"),
+    Case("frame-jpeg-declares-4gp", "read_image_rgb", "JPEG SOF0 declaring 65,000 x 65,000, no scan",
+         frame_declares("jpg"), CLEAR, "00001.jpg", "declares 65000x65000 pixels"),
     # aliasing and size of params.yaml
     Case("params-alias-bomb", "load_params", "aliases expanding to 10^9 values under a known key",
          params_alias_bomb, CLEAR, "params.yaml", "M3T_YAML_MAX_NODES"),

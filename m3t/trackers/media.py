@@ -12,7 +12,9 @@ Axis legend: H height, W width (pixels); frames are (H, W, 3) uint8 RGB.
 """
 from __future__ import annotations
 
+import os
 import re
+import struct
 from collections.abc import Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,8 @@ import cv2
 import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+MAX_PIXELS_ENV = "M3T_MAX_IMAGE_PIXELS"
+MAX_PIXELS = 2**26  # 67 megapixels a frame; 8K UHD is 33
 
 
 class MediaError(ValueError):
@@ -61,11 +65,49 @@ def list_frame_files(folder: str | Path) -> list[Path]:
     return sorted(files, key=lambda p: p.name)
 
 
+def declared_image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) a PNG or JPEG header declares, read without decoding; None for another format or a header
+    this reader cannot follow (the decoder then judges the file)."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        return struct.unpack(">II", data[16:24])
+    if data[:2] != b"\xff\xd8":
+        return None
+    at = 2
+    while at + 4 <= len(data):
+        if data[at] != 0xFF:
+            return None
+        marker = data[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a length
+            at += 2
+            continue
+        (length,) = struct.unpack(">H", data[at + 2:at + 4])
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC) and at + 9 <= len(data):
+            height, width = struct.unpack(">HH", data[at + 5:at + 9])
+            return width, height
+        at += 2 + length
+    return None
+
+
+def check_pixels(width: int, height: int, where: str) -> None:
+    """Refuse a frame whose declared size passes ``M3T_MAX_IMAGE_PIXELS`` (default :data:`MAX_PIXELS`) before a
+    decoder allocates it (OpenCV allows 2^30 pixels: 3 GB for one frame a 1 kB file declares)."""
+    limit = int(os.environ.get(MAX_PIXELS_ENV) or MAX_PIXELS)
+    if width * height > limit:
+        raise MediaError(f"{where} declares {width}x{height} pixels, more than {limit:,}; a legitimately large frame: "
+                         f"raise {MAX_PIXELS_ENV}")
+
+
 def read_image_rgb(path: str | Path) -> np.ndarray:
     """One image file -> (H, W, 3) uint8 RGB (grey and RGBA images are converted)."""
     path = Path(path)
     # imdecode on the bytes instead of imread: imread cannot open non-ASCII paths on every platform.
     data = np.fromfile(path, dtype=np.uint8) if path.is_file() else np.empty(0, np.uint8)
+    size = declared_image_size(data.tobytes()[: 1 << 16])
+    if size is not None:
+        check_pixels(*size, f"frame image {path}")
     bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if bgr is None:
         raise MediaError(f"frame image {path} is missing or unreadable (not a decodable PNG/JPEG); "
@@ -96,6 +138,13 @@ def _open_folder(folder: Path, fps: float | None) -> MediaStream:
 
 def _open_video(path: Path, fps: float | None) -> MediaStream:
     capture = cv2.VideoCapture(str(path))
+    if capture.isOpened():
+        try:
+            check_pixels(int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                         f"video {path}")
+        except MediaError:
+            capture.release()
+            raise
     ok, bgr = capture.read() if capture.isOpened() else (False, None)
     if not ok or bgr is None:
         capture.release()

@@ -64,7 +64,7 @@ def test_the_hostile_table_covers_the_issue():
                  "forged", "pose-header", "wrong-type"):
         assert kind in ids, kind
     for reader in ("track", "load_model_arrays", "read_checkpoint", "NLF", "slt_pickle", "mead", "load_params",
-                   "posefile", "read_shard", "read_token_shard"):
+                   "posefile", "read_shard", "read_token_shard", "read_image_rgb"):
         assert any(c.reader.startswith(reader) for c in HOSTILE), reader
     for name in arrow_schema(malformed_cases._layout()).names:
         assert f"shard-wrong-type-{name}" in ids, name
