@@ -1,17 +1,25 @@
-"""Mutation testing of the core library: how many small, plausible code changes the tests notice.
+"""Mutation testing of the library: how many small, plausible code changes the tests notice.
 
-mutmut (configured in ``pyproject.toml`` ``[tool.mutmut]``) copies ``m3t/`` to ``mutants/``, plants every mutant
-of the core modules (``body``, ``fitting``, ``metrics``, ``tokenizers``, ``smlm``, ``shards``, ``corpora``): a
-flipped comparison or operator, a changed constant or string, a dropped argument, ``None`` for a value. For each
-mutant it runs the tests of the selection that call the mutated function (forked, so imports are paid once). A
-mutant is *killed* when a test fails, *timeout* when its tests run past 2 x (the clean run's time + 20 s) (an
-endless loop), *crashed* when the test process dies by a signal; all three are detected. It *survived* when every test
-passes, and has *no tests* when no selected test calls the function.
+mutmut (configured in ``pyproject.toml`` ``[tool.mutmut]``) copies ``m3t/`` and ``dashboards/`` to ``mutants/``,
+plants every mutant of every package (the core ``body``, ``fitting``, ``metrics``, ``tokenizers``, ``smlm``,
+``shards``, ``corpora``; ``sgsa``, ``slr``, ``backtranslation``, ``claims``, ``render``, ``trackers``, the top-level
+modules, the dashboard builder): a flipped comparison or operator, a changed constant or string, a dropped
+argument, ``None`` for a value. For each mutant it runs the tests of the selection that call the mutated function
+(forked, so imports are paid once). A mutant is *killed* when a test fails, *timeout* when its tests run past
+2 x (the clean run's time + 20 s) (an endless loop), *crashed* when the test process dies by a signal; all three
+are detected. It *survived* when every test passes, and has *no tests* when no selected test calls the function.
 
     python benchmarks/mutation.py --sample 1000    # a seeded random sample (what a 2-core machine does in ~1 h)
     python benchmarks/mutation.py                  # every mutant (~19,000: hours; use --max-children 16)
     python benchmarks/mutation.py --sample 1000 --retest survived   # after adding tests: the survivors again
     python benchmarks/mutation.py --report-only    # rewrite the report from the verdicts in mutants/
+    python benchmarks/mutation.py --sample 200 --seed 4 --modules sgsa,slr,dashboards \
+        --exclude-sample benchmarks/results/mutation_first_sample.json   # a fresh draw from some modules
+
+A module is a package of ``m3t`` (``sgsa``), a top-level module of ``m3t`` by its name (``experiment``) or
+``dashboards``. A draw from some modules keeps, in the report, the last figures of the others (an earlier run's,
+with its commit); ``--exclude-sample`` leaves out the mutants of an earlier draw (its ``mutants/sample.json``,
+copied aside), so the new draw holds none that tests were written against after reading the earlier one.
 
 The mutants whose survival new tests were written against are listed in ``benchmarks/mutation_targeted.json``;
 the report also rates the sample without any mutant of their functions (the estimate no test was tuned to: the
@@ -29,8 +37,8 @@ import collections
 import datetime as dt
 import json
 import math
-import os
 import hashlib
+import os
 import subprocess
 import sys
 import time
@@ -92,9 +100,20 @@ def draw(population: list[str], n: int, seed: int) -> list[str]:
     return sorted(sorted(population, key=rank)[:n])
 
 
+# the mutated source trees under mutants/ (pyproject's source_paths)
+SOURCES = ("m3t", "dashboards")
+
+
 def module_of(path: Path) -> str:
-    """``m3t/fitting/corpus.py`` -> ``fitting``."""
-    return path.relative_to(ROOT / "mutants" / "m3t").parts[0]
+    """The report's module of a mutated file: ``m3t/fitting/corpus.py`` -> ``fitting`` (a package of the
+    library), ``m3t/experiment.py`` -> ``experiment`` (a top-level module), ``dashboards/sections/runs.py`` ->
+    ``dashboards`` (the dashboard builder, one module). ``path`` is relative to ``mutants/`` or the repository."""
+    parts = path.parts
+    if parts[0] == "mutants" or path.is_absolute():
+        parts = path.relative_to(ROOT / "mutants").parts if path.is_absolute() else parts[1:]
+    if parts[0] != "m3t":
+        return parts[0]
+    return parts[1] if len(parts) > 2 else Path(parts[1]).stem
 
 
 def verdicts() -> list[dict]:
@@ -102,7 +121,8 @@ def verdicts() -> list[dict]:
     from mutmut.stats import status_by_exit_code
 
     rows = []
-    for meta in sorted((ROOT / "mutants" / "m3t").rglob("*.py.meta")):
+    metas = [meta for source in SOURCES for meta in sorted((ROOT / "mutants" / source).rglob("*.py.meta"))]
+    for meta in metas:
         data = json.loads(meta.read_text())
         source = meta.with_suffix("")  # mutants/m3t/x/y.py
         for name, code in data["exit_code_by_key"].items():
@@ -159,10 +179,38 @@ def diff_lines(name: str, file: str) -> list[str]:
             if line[:1] in "-+" and not line.startswith(("---", "+++"))]
 
 
+def earlier_runs(result: dict, out: Path) -> list[dict]:
+    """The runs in ``out`` (the previous result file: its run and the earlier ones it kept) over modules the new
+    ``result`` did not measure: a run drawn from some modules (``--modules``) keeps the last figures of the
+    others, each with the commit, date and sample it was made on (they are not rerun)."""
+    if not out.exists():
+        return []
+    previous = json.loads(out.read_text()).get("detail", {})
+    runs = [{k: v for k, v in previous.items() if k != "earlier"}, *previous.get("earlier", [])]
+    measured = set(result["modules"])
+    return [run for run in runs if run.get("modules") and not set(run["modules"]) & measured]
+
+
+TABLE_HEADER = ("| module | mutants | killed | timeout | crashed | survived | no tests | other | detection % (95% CI) "
+                "| of tested % | equivalent | score % (95% CI) |")
+# the full report (survivors with their diffs) of an earlier run whose rows a later, restricted run keeps
+EARLIER_REPORTS = {"45b77c4": "Its survivors and their reasons: [mutation_core.md](mutation_core.md)."}
+
+
+def drawn_from(result: dict) -> str:
+    """How a sample's population was restricted, for the report: '' when it was every mutant."""
+    parts = []
+    if result.get("modules_drawn"):
+        parts.append(f"drawn from {', '.join(result['modules_drawn'])} only")
+    if result.get("excluded"):
+        parts.append(f"leaving out the {result['excluded']} mutants of an earlier draw (a fresh draw)")
+    return f", {'; '.join(parts)}" if parts else ""
+
+
 def write_report(rows: list[dict], result: dict, out_md: Path, justified: dict[str, str]) -> None:
     total = result["total"]
     lines = [
-        "# Mutation testing of the core library",
+        "# Mutation testing of the library",
         "",
         f"mutmut {result['mutmut']} on commit `{result['commit']}`, {result['date']}; command: "
         "`python benchmarks/mutation.py` (configuration: `pyproject.toml` `[tool.mutmut]`).",
@@ -176,7 +224,8 @@ def write_report(rows: list[dict], result: dict, out_md: Path, justified: dict[s
         "count as undetected in both rates.",
         "",
         (f"**A seeded random sample** of {result['sample']} of the {result['population']} mutants (seed "
-         f"{result['seed']}: the mutants of lowest sha256(seed:name)); each rate carries its Wilson 95% interval."
+         f"{result['seed']}: the mutants of lowest sha256(seed:name)){drawn_from(result)}; each rate carries its "
+         "Wilson 95% interval."
          if result.get("sample") else
          f"Every one of the {result['population']} mutants."),
         "",
@@ -196,6 +245,18 @@ def write_report(rows: list[dict], result: dict, out_md: Path, justified: dict[s
                      f"| {c['other']} | {rate(c['detection_pct'], c['detection_ci95'])} "
                      f"| {c['detection_of_tested_pct']} "
                      f"| {c['equivalent']} | {rate(c['score_pct'], c['score_ci95'])} |")
+    for run in result.get("earlier", []):
+        lines += ["", (f"**Earlier run, not rerun here**: {', '.join(run['modules'])}, measured on commit "
+                       f"`{run.get('commit')}` ({run.get('date')}), a sample of {run.get('sample')} of "
+                       f"{run.get('population')} mutants (seed {run.get('seed')}){drawn_from(run)}; the code of those "
+                       f"modules may have changed since. {EARLIER_REPORTS.get(run.get('commit'), '')}"), "",
+                  TABLE_HEADER, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for name, c in [*run["modules"].items(), ("**all**", run["total"])]:
+            lines.append(f"| {name} | {c['mutants']} | {c['killed']} | {c['timeout']} | {c['crashed']} "
+                         f"| {c['survived']} | {c['no_tests']} | {c['other']} "
+                         f"| {c['detection_pct']} ({c['detection_ci95'][0]}-{c['detection_ci95'][1]}) "
+                         f"| {c['detection_of_tested_pct']} | {c['equivalent']} "
+                         f"| {c['score_pct']} ({c['score_ci95'][0]}-{c['score_ci95'][1]}) |")
     if total["not_checked"]:
         lines += ["", f"**{total['not_checked']} mutants are not checked yet** (the run was stopped): rerun the "
                   "command to finish; the numbers above count checked mutants only."]
@@ -237,9 +298,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sample", type=int, default=0, help="test a seeded random sample of this many mutants "
                         "(0: all)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--modules", default="", help="draw the sample from these modules only, comma separated "
+                        "(e.g. 'sgsa,slr,experiment,dashboards'; a package of m3t, a top-level module of m3t by its "
+                        "name, or 'dashboards'); the report keeps an earlier run's rows of the other modules")
+    parser.add_argument("--exclude-sample", default="", help="a sample file (mutants/sample.json of an earlier draw, "
+                        "copied aside) whose mutants are left out of the population: a fresh draw, none of whose "
+                        "mutants a test was written against after reading the earlier draw's survivors")
     parser.add_argument("--retest", default="", help="also retest the sample's mutants of these statuses, comma "
                         "separated (e.g. 'survived' after adding tests, 'timeout' after changing the timeout)")
     parser.add_argument("--report-only", action="store_true", help="write the report from the stored verdicts")
+    parser.add_argument("--note", action="append", default=[], help="a paragraph for the report, under the table "
+                        "(repeatable; --report-only keeps the previous report's notes when none is given)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "mutation.json"))
     args = parser.parse_args(argv)
     os.chdir(ROOT)  # mutmut works in the repository root (mutants/ beside m3t/)
@@ -254,9 +323,16 @@ def main(argv: list[str] | None = None) -> dict:
             subprocess.run([sys.executable, "-c", GENERATE.format(children=args.max_children)], cwd=ROOT, check=True,
                            stdout=subprocess.DEVNULL)
             stored = verdicts()
-            population = sorted(r["name"] for r in stored)
+            modules = sorted(m.strip() for m in args.modules.split(",") if m.strip())
+            unknown = set(modules) - {r["module"] for r in stored}
+            if unknown:  # a module without a function to mutate (or a misspelt one): said, not fatal
+                print(f"--modules: no mutants in {sorted(unknown)}", flush=True)
+            excluded = set(json.loads(Path(args.exclude_sample).read_text())["names"]) if args.exclude_sample else set()
+            population = sorted(r["name"] for r in stored if (not modules or r["module"] in modules)
+                                and r["name"] not in excluded)
             chosen = draw(population, args.sample, args.seed)
-            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen}))
+            SAMPLE_FILE.write_text(json.dumps({"seed": args.seed, "population": len(population), "names": chosen,
+                                               "modules": modules, "excluded": len(excluded)}))
             # mutmut retests every mutant it is given by name: give it the sampled ones without a verdict (new, or
             # changed since) and those of the statuses asked for
             status = {r["name"]: r["status"] for r in stored}
@@ -288,16 +364,23 @@ def main(argv: list[str] | None = None) -> dict:
     justified = json.loads(JUSTIFIED_FILE.read_text()) if JUSTIFIED_FILE.exists() else {}
     result = summary(rows, targeted, equivalents(justified))
     result.update({"population": sample["population"] if sample else population,
-                   "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None})
+                   "sample": len(rows) if sample else None, "seed": sample["seed"] if sample else None,
+                   "modules_drawn": sample.get("modules", []) if sample else [],
+                   "excluded": sample.get("excluded", 0) if sample else 0})
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     result.update({"mutmut": mutmut.__version__, "commit": commit or "?", "date": dt.date.today().isoformat(),
                    "run_seconds": seconds, "max_children": args.max_children})
     out = Path(args.out)
-    if seconds is None and out.exists():  # --report-only: keep the commit, date and time of the run that measured
-        previous = json.loads(out.read_text()).get("detail", {})
-        kept = ("run_seconds", "max_children", "commit", "date")
+    previous = json.loads(out.read_text()).get("detail", {}) if out.exists() else {}
+    if seconds is None and (previous.get("seed"), previous.get("population"), previous.get("modules_drawn", [])) == (
+            result["seed"], result["population"], result["modules_drawn"]):
+        # --report-only over the draw the previous report measured: keep the commit, date and time of that run
+        kept = ("run_seconds", "max_children", "commit", "date", "notes")
         result.update({k: previous.get(k) for k in kept if previous.get(k)})
+    if args.note:
+        result["notes"] = list(args.note)
+    result["earlier"] = earlier_runs(result, out)
     write_report(rows, result, out.with_suffix(".md"), justified)
     from report import write_and_log
 

@@ -12,6 +12,7 @@ from m3t.metrics.stats import (
     NOT_REPRODUCED,
     REPRODUCED,
     bootstrap_interval,
+    hierarchical_interval,
     paired,
     verdict_better,
     verdict_within,
@@ -109,3 +110,94 @@ def test_one_seed_resamples_only_the_clips():
     assert one.seeds == 1 and one.interval == pytest.approx((-1.0, -1.0))
     mixed = paired(A[0], A[0] + np.array([-1.0, 1.0] * 4), rng())
     assert mixed.interval[0] < 0 < mixed.interval[1]
+
+
+# ---- the intervals' arithmetic on scripted resamples: the draws are given, the interval follows by hand --------
+class ScriptedDraws:
+    """A generator whose ``integers`` returns the given index arrays in turn (each checked against the shape and
+    range asked for), or, when none are given, seeded draws, recording every shape asked for."""
+
+    def __init__(self, *draws):
+        self.draws, self.sizes = [np.asarray(d) for d in draws], []
+        self.fallback = np.random.default_rng(0)
+
+    def integers(self, low, high, size):
+        self.sizes.append(tuple(size))
+        if not self.draws:
+            return self.fallback.integers(low, high, size=size)
+        out = self.draws.pop(0)
+        assert out.shape == tuple(size) and low <= out.min() and out.max() < high
+        return out
+
+
+def test_the_clip_bootstrap_takes_the_percentiles_of_the_resampled_means():
+    values = np.array([0.0, 10.0, 20.0, 30.0])
+    draws = ScriptedDraws([[0, 0, 0, 0], [1, 1, 1, 1], [2, 2, 2, 2], [3, 3, 3, 3], [0, 1, 2, 3]])
+    # resampled means 0, 10, 20, 30, 15; at 50% the 25th and 75th percentiles (linear): 10 and 20
+    assert bootstrap_interval(values, draws, resamples=5, confidence=0.5) == pytest.approx((10.0, 20.0))
+    draws = ScriptedDraws([[0, 0, 0, 0], [1, 1, 1, 1], [2, 2, 2, 2], [3, 3, 3, 3], [0, 1, 2, 3]])
+    # at 90%: the 5th and 95th percentiles of 0, 10, 15, 20, 30: 0 + 0.2 x 10 = 2 and 20 + 0.8 x 10 = 28
+    assert bootstrap_interval(values, draws, resamples=5, confidence=0.9) == pytest.approx((2.0, 28.0))
+    draws = ScriptedDraws()
+    bootstrap_interval(values, draws, resamples=300)  # drawn 256 resamples at a time
+    assert draws.sizes == [(256, 4), (44, 4)]
+    for bad in ({"resamples": 0}, {"confidence": 0.0}, {"confidence": 1.0}):
+        with pytest.raises(ValueError, match="need resamples >= 1"):
+            bootstrap_interval(values, rng(), **bad)
+
+
+def test_the_hierarchical_bootstrap_resamples_clips_jointly_and_each_sides_seeds_independently():
+    a = np.array([[0.0, 2.0], [4.0, 6.0]])  # (seeds, clips)
+    b = np.array([[10.0, 10.0], [20.0, 20.0]])
+    clips = [[[0, 1]], [[0, 0]], [[1, 1]]]  # (k, 1, C): one set of clips per resample, the same for every seed
+    seeds_a = [[[0], [1]], [[0], [0]], [[1], [1]]]  # (k, R, 1)
+    seeds_b = [[[0], [1]], [[1], [1]], [[0], [0]]]
+    # resample 1: B's seeds 10, 20 -> 15 per clip, A's (0 + 4) / 2 = 2 and (2 + 6) / 2 = 4 -> 13, 11 -> 12
+    # resample 2: clip 0 twice, B seed 1 (20), A seed 0 (0) -> 20; resample 3: clip 1, B seed 0 (10), A seed 1 (6) -> 4
+    interval = hierarchical_interval(a, b, ScriptedDraws(clips, seeds_a, seeds_b), resamples=3, confidence=0.5)
+    assert interval == pytest.approx((8.0, 16.0))  # 25th / 75th percentiles of 4, 12, 20
+    # a seed that did not score a clip leaves that clip's seed average, not the clip
+    holed = a.copy()
+    holed[1, 1] = np.nan
+    interval = hierarchical_interval(holed, b, ScriptedDraws([[[1, 1]]], [[[0], [1]]], [[[0], [0]]]), resamples=1)
+    assert interval == pytest.approx((8.0, 8.0))  # clip 1: A = 2 (seed 1 missing), B = 10
+    draws = ScriptedDraws()
+    hierarchical_interval(np.zeros((3, 5)), np.ones((3, 5)), draws, resamples=260)
+    assert draws.sizes == [(256, 1, 5), (256, 3, 1), (256, 3, 1), (4, 1, 5), (4, 3, 1), (4, 3, 1)]
+    assert all(math.isnan(v) for v in hierarchical_interval(np.zeros((2, 0)), np.zeros((2, 0)), rng()))
+    with pytest.raises(ValueError, match="need resamples >= 1"):
+        hierarchical_interval(a, b, rng(), resamples=0)
+
+
+def test_paired_means_spreads_and_difference_by_hand():
+    a = np.array([[1.0, 3.0], [3.0, 5.0]])  # per-seed means 2, 4
+    b = np.array([[2.0, 2.0], [2.0, 4.0]])  # per-seed means 2, 3
+    pair = paired(a, b, ScriptedDraws(), resamples=10)
+    assert (pair.mean_a, pair.mean_b) == pytest.approx((3.0, 2.5))
+    assert (pair.std_a, pair.std_b) == pytest.approx((1.0, 0.5))  # over seeds, population (ddof 0)
+    # B - A = [[1, -1], [-1, -1]]: over the seeds 0 for clip 0 and -1 for clip 1, -0.5 over the clips
+    assert pair.difference == pytest.approx(-0.5)
+    assert (pair.seeds, pair.clips) == (2, 2)
+    assert pair.as_dict()["interval"] == pair.interval
+    with pytest.raises(ValueError, match=r"expected \(seeds, clips\) values"):
+        paired(np.zeros((1, 2, 3)), np.zeros((1, 2, 3)), rng())
+
+
+@pytest.mark.parametrize(("interval", "lower_is_better", "verdict"), [
+    ((-2.0, -0.5), True, REPRODUCED), ((0.5, 2.0), False, REPRODUCED),
+    ((0.5, 2.0), True, NOT_REPRODUCED), ((-2.0, -0.5), False, NOT_REPRODUCED),
+    ((-2.0, 0.0), True, INCONCLUSIVE), ((0.0, 2.0), False, INCONCLUSIVE),  # touching 0 is not a side of it
+    ((0.0, 2.0), True, INCONCLUSIVE), ((-2.0, 0.0), False, INCONCLUSIVE),
+])
+def test_better_needs_the_whole_interval_strictly_on_one_side(interval, lower_is_better, verdict):
+    assert verdict_better(interval, lower_is_better) == verdict
+
+
+def test_within_counts_the_band_edges_as_inside():
+    assert verdict_within((40.0, 60.0), 50.0, 10.0) == REPRODUCED  # both ends on the edges
+    assert verdict_within((30.0, 40.0), 50.0, 10.0) == INCONCLUSIVE  # touches the lower edge from outside
+    assert verdict_within((60.0, 70.0), 50.0, 10.0) == INCONCLUSIVE
+    assert verdict_within((20.0, 39.9), 50.0, 10.0) == NOT_REPRODUCED
+    assert verdict_within((60.1, 70.0), 50.0, 10.0) == NOT_REPRODUCED
+    assert verdict_within((50.0, 50.0), 50.0, 0.0) == REPRODUCED  # a zero margin is allowed
+    assert verdict_within((1.0, math.inf), 50.0, 10.0) == INCONCLUSIVE

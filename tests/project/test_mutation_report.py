@@ -2,6 +2,7 @@
 the rate, and the interval of a sampled rate. The mutmut run itself is the benchmark command, not a test."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -76,3 +77,26 @@ def test_the_score_leaves_out_only_the_survivors_justified_as_equivalent():
     assert total["equivalent"] == 2  # the killed one is not a survivor; the reworded title stays undetected
     assert total["score_pct"] == 70.0 and total["score_ci95"] == mutation.wilson(7, 10)  # 7 / (12 - 2)
     assert mutation.summary(rows("metrics", killed=3))["total"]["equivalent"] == 0
+
+
+def test_modules_are_packages_top_level_modules_by_name_and_the_dashboard():
+    assert mutation.module_of(Path("mutants/m3t/fitting/corpus.py")) == "fitting"
+    assert mutation.module_of(Path("m3t/experiment.py")) == "experiment"
+    assert mutation.module_of(mutation.ROOT / "mutants" / "m3t" / "sgsa" / "model.py") == "sgsa"
+    assert mutation.module_of(Path("mutants/dashboards/sections/runs.py")) == "dashboards"
+
+
+def test_a_run_over_some_modules_keeps_the_earlier_figures_of_the_others(tmp_path):
+    core = {"modules": {"body": {}, "fitting": {}}, "total": {}, "commit": "aaa", "sample": 800}
+    out = tmp_path / "mutation.json"
+    out.write_text(json.dumps({"detail": core}))
+    new = {"modules": {"sgsa": {}, "slr": {}}}
+    assert mutation.earlier_runs(new, out) == [core]  # other modules: kept, as measured then
+    assert mutation.earlier_runs({"modules": {"body": {}}}, out) == []  # remeasured: the earlier run goes
+    out.write_text(json.dumps({"detail": {**new, "commit": "bbb", "earlier": [core]}}))
+    kept = mutation.earlier_runs({"modules": {"sgsa": {}}}, out)  # a rerun of the new modules keeps the core run
+    assert kept == [core]
+    assert mutation.earlier_runs(new, tmp_path / "none.json") == []
+    assert mutation.drawn_from({"modules_drawn": ["sgsa", "slr"], "excluded": 300}) == (
+        ", drawn from sgsa, slr only; leaving out the 300 mutants of an earlier draw (a fresh draw)")
+    assert mutation.drawn_from({}) == ""

@@ -238,3 +238,64 @@ def test_clip_vertices_chunked_equal_one_forward(body):
         whole = body.forward({k: torch.as_tensor(v) for k, v in params.items()}, torch.as_tensor(identity)).vertices
     assert chunked.shape == (5, whole.shape[1], 3) and chunked.dtype == np.float32
     np.testing.assert_allclose(chunked, whole.numpy(), atol=1e-5)
+
+
+# ---- the frame plumbing, by hand: which frame a finished sequence shows, its label, even sides, the panel layout
+def test_a_finished_sequence_holds_its_last_frame_and_says_so():
+    from m3t.render.video import held, progress_label
+
+    assert [held(3, t) for t in range(5)] == [0, 1, 2, 2, 2]
+    assert [progress_label("PT", 3, t) for t in (0, 2, 3, 9)] == ["PT", "PT", "PT (3/3)", "PT (3/3)"]
+
+
+def test_odd_sides_are_padded_by_repeating_the_last_row_and_column():
+    from m3t.render.video import pad_even
+
+    even = np.zeros((4, 6, 3), np.uint8)
+    assert pad_even(even) is even
+    frame = np.arange(3 * 5 * 3, dtype=np.uint8).reshape(3, 5, 3)
+    padded = pad_even(frame)
+    assert padded.shape == (4, 6, 3)
+    assert np.array_equal(padded[:3, :5], frame) and np.array_equal(padded[3, :5], frame[2])
+    assert np.array_equal(padded[:3, 5], frame[:, 4])
+    assert pad_even(np.zeros((2, 3, 3), np.uint8)).shape == (2, 4, 3)
+    assert pad_even(np.zeros((3, 2, 3), np.uint8)).shape == (4, 2, 3)
+
+
+def test_frames_are_checked_for_type_shape_and_one_size():
+    from m3t.render.video import _ascii, _checked, write_video
+
+    ok = np.zeros((4, 4, 3), np.uint8)
+    first, frames = _checked([ok, ok])
+    assert first is not None and len(list(frames)) == 2
+    with pytest.raises(ValueError, match="no frame to write"):
+        _checked([])
+    for bad in (np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.uint8), np.zeros((4, 4, 4), np.uint8),
+                np.zeros((0, 4, 3), np.uint8)):
+        with pytest.raises(ValueError, match=r"frame 0: .* expected \(H, W, 3\) uint8"):
+            _checked([bad])
+    _, rest = _checked([ok, np.zeros((4, 6, 3), np.uint8)])
+    with pytest.raises(ValueError, match=r"frame 1: shape \(4, 6, 3\), but frame 0 was \(4, 4, 3\)"):
+        list(rest)
+    with pytest.raises(ValueError, match="written as .mp4"):
+        write_video([ok], "clip.avi")
+    assert _ascii("Zürich 1 ~") == "Z?rich 1 ~" and _ascii("\t") == "?"
+
+
+def test_panels_sit_side_by_side_under_their_labels_with_white_gaps():
+    from m3t.render.video import BACKGROUND, LABEL_HEIGHT, side_by_side
+
+    tall, short = np.zeros((10, 6, 3), np.uint8), np.full((4, 3, 3), 7, np.uint8)
+    row = side_by_side([tall, short], ["a", "b"], gap=2)
+    assert row.shape == (10 + LABEL_HEIGHT, 6 + 2 + 3, 3)
+    assert np.array_equal(row[LABEL_HEIGHT:, :6], tall)  # the first panel under its label strip
+    assert (row[:, 6:8] == BACKGROUND).all()  # the gap
+    assert np.array_equal(row[LABEL_HEIGHT:LABEL_HEIGHT + 4, 8:], short)
+    assert (row[LABEL_HEIGHT + 4:, 8:] == BACKGROUND).all()  # the shorter panel padded with white below
+    assert side_by_side([tall, short], ["a", "b"], gap=0).shape[1] == 9
+    titled = side_by_side([tall], ["a"], title="T")
+    assert titled.shape == (10 + 2 * LABEL_HEIGHT, 6, 3)
+    with pytest.raises(ValueError, match="1 panels and 2 labels"):
+        side_by_side([tall], ["a", "b"])
+    with pytest.raises(ValueError, match="0 panels"):
+        side_by_side([], [])

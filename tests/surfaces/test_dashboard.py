@@ -101,3 +101,195 @@ def test_a_saved_study_shows_its_judged_claims_with_the_seed_halves_that_flip(tm
     assert "FSQ uses more codes" in page and "the SMLM claim" not in page  # judged rows only
     assert "seed halves: not reproduced / inconclusive" in page and "1 of 1 claims flip" in page
     assert "m3t study" in saved_claims(tmp_path / "none.json", "Tab. 3 study", "m3t study")
+
+
+# ---- the documentation's generated pages (dashboards.docs_pages) from hand-made metrics files: each cell below is
+# the metrics value written as the page writes it (3 significant digits, "-" when missing), worked out by hand.
+# tests/project/test_docs.py checks the committed pages against the repository's own files.
+def _write_json(root: Path, rel: str, data: dict) -> None:
+    (root / rel).parent.mkdir(parents=True, exist_ok=True)
+    (root / rel).write_text(json.dumps(data), encoding="utf-8")
+
+
+def _rows(text: str, first: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith(f"| {first}")]
+
+
+def test_docs_pages_small_helpers():
+    from dashboards import docs_pages
+
+    assert docs_pages.pct(None) == "-" and docs_pages.pct(0.1234) == "12.3 %" and docs_pages.pct(1) == "100.0 %"
+    assert docs_pages.page_table(["a", "b"], [["x|y", 1]]) == "| a | b |\n|---|---|\n| x\\|y | 1 |\n"
+    assert docs_pages._halves({"halves": None}) == "-"
+    assert docs_pages._halves({"halves": {"seeds": [["0", "1"], ["2"]], "verdicts": ["reproduced"] * 2}}) == (
+        "same ({0, 1} / {2})")
+    assert docs_pages._halves({"halves": {"seeds": [["0"], ["1"]], "verdicts": ["reproduced", "inconclusive"]}}) == (
+        "**flips**: reproduced / inconclusive ({0} / {1})")
+
+
+def test_an_empty_root_names_the_stage_of_every_missing_figure(tmp_path):
+    from dashboards import docs_pages
+
+    page = docs_pages.embedded_page(tmp_path)
+    for rel, stage in (("data/shards/synthetic/summary.json", "fit-corpus"),
+                       ("data/shards/fingerspelling/summary.json", "fit-corpus"),
+                       ("models/tokenizers/metrics.json", "train-tokenizers"), ("metrics/smlm/metrics.json", "evaluate-smlm"),
+                       ("metrics/backtranslation/metrics.json", "evaluate-backtranslation"),
+                       ("metrics/sgsa/metrics.json", "evaluate-sgsa"), ("metrics/slr/table.md", "evaluate-slr")):
+        assert f"*Not measured yet: `{rel}` is missing; run `dvc repro {stage}`.*" in page
+    assert "the synthetic corpus (its test split, one seed)" in page
+    assert "from an uncommitted `dvc.lock` (no git history here); do not edit by hand. Sources: ." in page
+    claims = docs_pages.claims_page(tmp_path)
+    assert "*Not run yet: `metrics/study/claims.json` is missing. Command: `m3t study`" in claims
+    assert "*Not run yet: `metrics/tab3/table.md` is missing;" in claims
+
+
+def test_the_fitting_and_tokenizer_sections_by_hand(tmp_path):
+    from dashboards import docs_pages
+
+    _write_json(tmp_path, "data/shards/synthetic/summary.json", {
+        "clips_fitted": 3, "clips_total": 4, "frames": 120, "reproj_px_mean": 1.5, "reproj_px_median": 1.25,
+        "joint_mm_mean": 12.345, "pa_joint_mm_mean": 8.0, "init_pa_joint_mm_mean": 20.0, "body_deg_mean": 3.0,
+        "right_hand_deg_mean": 4.5, "face_abs_mean": 0.1})
+    _write_json(tmp_path, "data/shards/fingerspelling/summary.json", {
+        "clips_fitted": 2, "clips_total": 2, "frames": 50, "reproj_px_mean": 2.0, "reproj_px_median": 1.0})
+    fitting = docs_pages.fitting_section(tmp_path)
+    assert _rows(fitting, "synthetic") == [
+        "| synthetic (ground truth) | 3 / 4 | 120 | 1.5 / 1.25 | 12.3 | 8 | 20 | 3 / 4.5 | 0.1 |"]
+    assert _rows(fitting, "fingerspelling") == [
+        "| fingerspelling (real `.pose`) | 2 / 2 | 50 | 2 / 1 | - | - | - | - / - | - |"]
+    assert "| corpus | clips fitted / listed | frames |" in fitting and "Not measured" not in fitting
+    _write_json(tmp_path, "models/tokenizers/metrics.json", {"hand": {
+        "codebook_size": 512, "test_pa_vpe_mm": 10.0, "test_vpe_mm": 20.5, "utilisation_pct": 50.0,
+        "perplexity_per_code": 0.5, "tokens_per_code": 2.0, "count_sd": 3.0, "all_splits_utilisation_pct": 60.25,
+        "all_splits_tokens_per_code": 4.0}})
+    tokenizers = docs_pages.tokenizer_section(tmp_path)
+    assert _rows(tokenizers, "hand") == ["| hand | 512 | 10 | 20.5 | 50.0 % | 0.5 | 2 | 3 | 60.2 % | 4 |"]
+    assert not _rows(tokenizers, "body") and not _rows(tokenizers, "face")  # only the groups trained
+
+
+def test_the_smlm_backtranslation_sgsa_and_slr_sections_by_hand(tmp_path):
+    from dashboards import docs_pages
+
+    _write_json(tmp_path, "metrics/smlm/metrics.json", {
+        "dtw_jpe_body_m": 1.5, "dtw_pa_jpe_body_m": 0.75, "dtw_jpe_body_pathnorm_m": 0.01,
+        "dtw_pa_jpe_body_pathnorm_m": 0.005, "dtw_jpe_hand_m": 2.0, "dtw_vpe_face_m": 0.25,
+        "clips_scored": 7, "clips_cut": 1, "empty_rate": 0.0, "stopped_rate": 0.5,
+        "translation/ASL-SYN/bleu4": 12.5, "bt/slt/ASL-SYN/rouge_l": 30.0, "bt/slt/ASL-SYN/bleu4": 4.0,
+        "bt/slt/ASL-SYN/sentences": 3})
+    smlm = docs_pages.smlm_section(tmp_path)
+    assert _rows(smlm, "body") == ["| body | 1.5 | 0.75 | 0.01 | 0.005 |"]
+    assert _rows(smlm, "hands") == ["| hands | 2 | - | - | - |"] and _rows(smlm, "face") == ["| face (DTW-VPE) | 0.25 | - | - | - |"]
+    assert "Clips scored: 7 (cut to the model's limits: 1; empty generations: 0.0 %; ended by EOS: 50.0 %)." in smlm
+    assert _rows(smlm, "ASL-SYN") == ["| ASL-SYN | 12.5 | 30 | 4 | 3 |"] and _rows(smlm, "DGS-SYN") == [
+        "| DGS-SYN | - | - | - | - |"]
+    _write_json(tmp_path, "metrics/backtranslation/metrics.json", {
+        "slt/CSL-SYN/rouge_l": 41.0, "slt/CSL-SYN/bleu1": 33.3333, "slt/CSL-SYN/bleu4": 9.0, "slt/CSL-SYN/sentences": 1})
+    bt = docs_pages.backtranslation_section(tmp_path)
+    assert _rows(bt, "CSL-SYN") == ["| CSL-SYN | 41 | 33.3 | 9 | 1 |"] and _rows(bt, "ASL-SYN") == [
+        "| ASL-SYN | - | - | - | - |"]
+    _write_json(tmp_path, "metrics/sgsa/metrics.json", {
+        "pt/test/dtw_jpe_mean_m": 0.012, "pt/test/dtw_jpe_body_pathnorm_m": 0.0005,
+        "pt/test/dtw_jpe_hand_pathnorm_m": 0.00025, "pt/test/length_ratio_median": 1.05,
+        "pt/test/length_within_25": 0.75, "pt/test/stopped_rate": 1.0, "pt/test/bt/slt_rouge_l": 22.0,
+        "pt/test/bt/slt_bleu4": 3.0, "pt/dev/dtw_jpe_mean_m": 9.0,
+        "smlm/test/dtw_jpe_mean_m": 0.02, "ground_truth/test/bt/slt_rouge_l": 50.0})
+    sgsa = docs_pages.sgsa_section(tmp_path)
+    assert _rows(sgsa, "Progressive") == ["| Progressive Transformers | 12 | 0.5 / 0.25 | 1.05 / 75.0 % / 100.0 % | 22 | 3 |"]
+    assert _rows(sgsa, "M3T SMLM") == ["| M3T SMLM | 20 | - | ends by EOS | - | - |"]
+    assert _rows(sgsa, "ground-truth") == ["| ground-truth motion | - | - | - | 50 | - |"]
+    assert not _rows(sgsa, "SGSA")  # a system without test figures has no row
+    (tmp_path / "metrics" / "slr").mkdir(parents=True)
+    (tmp_path / "metrics" / "slr" / "table.md").write_text("| Method | T-1 |\n", encoding="utf-8")
+    assert docs_pages.slr_section(tmp_path) == "## Recognition probe (`evaluate-slr`, M3T Tab. 4)\n\n| Method | T-1 |\n"
+    page = docs_pages.embedded_page(tmp_path)
+    assert "the synthetic corpus (7 test clips, one seed)" in page
+    assert ("Sources: `metrics/smlm/metrics.json`, `metrics/backtranslation/metrics.json`, `metrics/sgsa/metrics.json`, "
+            "`metrics/slr/table.md`.") in page
+
+
+def test_the_claims_page_counts_verdicts_and_tab3_is_copied(tmp_path):
+    from dashboards import docs_pages
+
+    row = {"claim": "B beats A", "source": "S", "paper": "5 -> 4", "metric": "m", "a": "A", "b": "B", "mean_a": 5.0,
+           "std_a": 0.5, "mean_b": 4.0, "std_b": 0.25, "value": -1.0, "interval95": [-1.5, -0.5], "band": None,
+           "verdict": "not reproduced", "note": "2 seed(s) < 3", "seeds": ["0", "1"], "halves": None}
+    _write_json(tmp_path, "metrics/study/claims.json", {"min_seeds": 3, "claims": [row, {**row, "verdict": "reproduced",
+                                                                                        "note": ""}]})
+    text = docs_pages.claims_page(tmp_path)
+    assert "2 claims judged: 1 reproduced, 1 not reproduced, 0 inconclusive. Verdicts need at least 3 seeds." in text
+    assert "| A 5 +- 0.5 -> B 4 +- 0.25 | -1 [-1.5, -0.5] | not reproduced (2 seed(s) < 3) | 2 | - |" in text
+    (tmp_path / "metrics" / "tab3").mkdir(parents=True)
+    (tmp_path / "metrics" / "tab3" / "table.md").write_text("| Q | BS |\n", encoding="utf-8")
+    text = docs_pages.claims_page(tmp_path)
+    assert text.endswith("(utilisation can be read where it is well above 1).\n\n| Q | BS |\n")
+    assert "Sources: `metrics/study/claims.json`, `metrics/tab3/table.md`." in text
+    (tmp_path / "README.md").write_text("# M: 3D sign language production, reproduced end to end\n\nSee "
+                                        "[a](docs/a.md).\n\n## Documentation\n\nx\n", encoding="utf-8")
+    written = docs_pages.write_pages(tmp_path, tmp_path / "out")
+    assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in written) == [
+        "index.md", "results/claims.md", "results/embedded.md"]
+    assert (tmp_path / "out" / "index.md").read_text(encoding="utf-8") == "# M\n\nSee [a](a.md).\n\n"
+
+
+def test_the_docs_pages_command_writes_the_pages_where_asked(tmp_path, capsys):
+    from dashboards import docs_pages
+
+    (tmp_path / "README.md").write_text("# R\n", encoding="utf-8")
+    docs_pages.main(["--root", str(tmp_path), "--out", str(tmp_path / "site-docs")])
+    printed = capsys.readouterr().out.splitlines()
+    assert sorted(Path(p).relative_to(tmp_path / "site-docs").as_posix() for p in printed) == [
+        "index.md", "results/claims.md", "results/embedded.md"]
+    assert (tmp_path / "site-docs" / "index.md").read_text(encoding="utf-8") == "# R\n"
+
+
+def test_a_figure_becomes_an_html_fragment_of_the_dashboards_size():
+    import plotly.graph_objects as go
+
+    from dashboards.sections.common import figure_html
+
+    fig = go.Figure(go.Scatter(x=[0, 1], y=[1, 2]))
+    html = figure_html(fig, "curve-1", width=300)
+    assert 'id="curve-1"' in html and "<html" not in html and "plotly.min.js" not in html
+    assert (fig.layout.width, fig.layout.height) == (300, 320)
+    assert (fig.layout.margin.l, fig.layout.margin.r, fig.layout.margin.t, fig.layout.margin.b) == (50, 20, 40, 40)
+    assert fig.layout.template.layout.plot_bgcolor == "white"  # plotly_white
+
+
+def test_a_claim_not_run_shows_no_figures_and_the_pages_go_to_docs_by_default(tmp_path):
+    from dashboards import docs_pages
+
+    row = {"claim": "C", "source": "S", "paper": "p", "metric": "m", "a": "A", "b": "B", "verdict": "not run",
+           "note": "run `m3t study`", "seeds": []}
+    _write_json(tmp_path, "metrics/study/claims.json", {"min_seeds": 3, "claims": [row]})
+    text = docs_pages.claims_section(tmp_path, "metrics/study/claims.json", "Study", "`m3t study`")
+    assert "| C | S | p | m | - | - | not run (run `m3t study`) | 0 | - |" in text
+    assert "0 claims judged: 0 reproduced, 0 not reproduced, 0 inconclusive. Verdicts need at least 3 seeds." in text
+    (tmp_path / "README.md").write_text("# R\n", encoding="utf-8")
+    written = docs_pages.write_pages(tmp_path)
+    assert sorted(p.relative_to(tmp_path / "docs").as_posix() for p in written) == [
+        "index.md", "results/claims.md", "results/embedded.md"]
+
+
+def test_the_videos_page_shows_the_newest_finished_runs_videos_grouped_by_clip(tmp_path):
+    from dashboards.sections.videos import videos
+    from m3t.experiment import RunRecord
+
+    def run(run_id, stage, status, files):
+        folder = tmp_path / run_id
+        for name in files:
+            (folder / "renders").mkdir(parents=True, exist_ok=True)
+            (folder / "renders" / name).write_bytes(run_id.encode())
+        return RunRecord(run_id, stage, 0, status, {}, {}, folder, {"mlflow.runName": f"{stage} {run_id}"})
+
+    runs = [run("failed", "evaluate-smlm", "FAILED", ["c1.mp4"]), run("none", "evaluate-smlm", "FINISHED", []),
+            run("new", "evaluate-smlm", "FINISHED", ["c1.mp4", "c1_skeleton.mp4"]),
+            run("old", "evaluate-smlm", "FINISHED", ["c0.mp4"]), run("sg", "evaluate-sgsa", "FINISHED", ["c1.mp4"])]
+    page = videos(runs, tmp_path / "site" / "media")
+    assert page.count("<h2>") == 1 and "<h2>c1</h2>" in page  # the old run's clip is not shown
+    assert ('src="media/evaluate-smlm/c1.mp4"></video><figcaption>SMLM, body surface (evaluate-smlm new)'
+            '</figcaption>') in page
+    assert 'src="media/evaluate-smlm/c1_skeleton.mp4"></video><figcaption>SMLM, skeleton (evaluate-smlm new)' in page
+    assert 'src="media/evaluate-sgsa/c1.mp4"></video><figcaption>PT / SGSA / SMLM, skeletons (evaluate-sgsa sg)' in page
+    assert (tmp_path / "site" / "media" / "evaluate-smlm" / "c1.mp4").read_bytes() == b"new"  # copied beside the page
+    assert "No rendered video yet" in videos([], tmp_path / "m")
