@@ -439,28 +439,27 @@ def _wrong_array(field, rows: int):
     return pa.array([str(i) for i in range(rows)], pa.string())
 
 
-def shard_wrong_type(column: str):
-    def run(tmp: Path):
-        from m3t.shards import read_shard
-
-        path = mc.shard(tmp)
-        mc.rewrite(path, lambda t: t.set_column(t.schema.get_field_index(column), column,
-                                                _wrong_array(t.schema.field(column), t.num_rows)))
-        return lambda: read_shard(path)
-
-    return run
-
-
-def token_wrong_type(column: str):
+def wrong_type(column: str, write, read):
+    """A table written by ``write(tmp)`` whose ``column`` is rewritten with another Arrow type; read by ``read``."""
     def build(tmp: Path):
-        from m3t.shards.tokens import read_token_shard
-
-        path = mc.token_shard(tmp)
+        path = write(tmp)
         mc.rewrite(path, lambda t: t.set_column(t.schema.get_field_index(column), column,
                                                 _wrong_array(t.schema.field(column), t.num_rows)))
-        return lambda: read_token_shard(path)
+        return lambda: read(path)
 
     return build
+
+
+def _read_shard(path: Path):
+    from m3t.shards import read_shard
+
+    return read_shard(path)
+
+
+def _read_token_shard(path: Path):
+    from m3t.shards.tokens import read_token_shard
+
+    return read_token_shard(path)
 
 
 def _columns(schema_of) -> list[str]:
@@ -590,10 +589,10 @@ _CASES: tuple[Case, ...] = (
          "clip.pose", "frame rate is nan"),
     # a wrong Arrow type in every column of both table formats
     *(Case(f"shard-wrong-type-{name}", "read_shard", f"column {name!r} of another Arrow type",
-           shard_wrong_type(name), CLEAR, "train.parquet", f"column {name!r} is")
+           wrong_type(name, mc.shard, _read_shard), CLEAR, "train.parquet", f"column {name!r} is")
       for name in _columns(_shard_columns)),
     *(Case(f"tokens-wrong-type-{name}", "read_token_shard", f"column {name!r} of another Arrow type",
-           token_wrong_type(name), CLEAR, "train.tokens.parquet", f"column {name!r} is")
+           wrong_type(name, mc.token_shard, _read_token_shard), CLEAR, "train.tokens.parquet", f"column {name!r} is")
       for name in _columns(_token_columns)),
 )
 CASES: tuple[Case, ...] = tuple(_staged(case) for case in _CASES)
