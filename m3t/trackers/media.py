@@ -105,7 +105,7 @@ def read_image_rgb(path: str | Path) -> np.ndarray:
     path = Path(path)
     # imdecode on the bytes instead of imread: imread cannot open non-ASCII paths on every platform.
     data = np.fromfile(path, dtype=np.uint8) if path.is_file() else np.empty(0, np.uint8)
-    size = declared_image_size(data.tobytes()[: 1 << 16])
+    size = declared_image_size(data[: 1 << 16].tobytes())  # the header only, not a copy of the file
     if size is not None:
         check_pixels(*size, f"frame image {path}")
     bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
