@@ -224,6 +224,41 @@ def pipeline_models(shards_data, tmp_path_factory) -> dict:
     return train_and_log(TINY, cfg, shards_data, ExperimentConfig(enabled=False), progress=False)
 
 
+def test_training_logs_its_files_params_curves_and_gloss_sources_to_mlflow(shards_data, tmp_path):
+    from m3t.experiment import fetch_runs
+
+    data = dataclasses.replace(shards_data, models_dir=str(tmp_path / "models"))
+    experiment = ExperimentConfig(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}",
+                                  artifact_dir=str(tmp_path / "mlruns"))
+    cfg = dataclasses.replace(FAST, epochs=2, eval_every=1, cache_dir=str(tmp_path / "cache"))
+    report = train_and_log(TINY, cfg, data, experiment, progress=False)
+    run = fetch_runs(experiment, stage="train-backtranslation")[0]
+    assert sorted(p.name for p in run.artifact_dir.iterdir()) == ["languages.json", "metrics.json", "skipped.jsonl"]
+    described = json.loads((data.backtranslation_dir / "languages.json").read_text())
+    assert {k: v for k, v in run.tags.items() if k.startswith("gloss_source/")} == {
+        f"gloss_source/{lang}": d["gloss_source"] for lang, d in described.items()}
+    assert (run.tags["corpus"], run.tags["input_layout"], run.tags["seed"]) == ("fake", TINY.input_layout, str(cfg.seed))
+    assert run.metrics["ASL-SYN/train_clips"] == report["ASL-SYN/train_clips"] == 4
+    assert run.metrics["ASL-SYN/best_epoch"] == report["ASL-SYN/best_epoch"] >= 1
+    assert "ASL-SYN/train_loss" in run.metrics and "CSL-SYN/train_loss" in run.metrics  # the per-epoch records
+    assert run.params["backtranslation.d_model"] == "32" and run.params["backtranslation_train.epochs"] == "2"
+
+
+def test_the_gloss_source_names_each_source_with_its_clips_only_when_there_are_several(spec):
+    clips = fitted("train")  # glosses annotated on every other clip; the rest get pseudo-glosses
+    mixed = language_corpus("ASL-SYN", clips, [], spec, TINY)
+    glosser = PseudoGlosser("ASL-SYN").method
+    assert mixed.gloss_source == ", ".join(sorted(["annotated (2 clips)", f"{glosser} (2 clips)"]))
+    annotated = language_corpus("ASL-SYN", clips, [], spec, dataclasses.replace(TINY, pseudo_glosses=False))
+    assert annotated.gloss_source == ", ".join(sorted(["annotated (2 clips)", "none (2 clips)"]))
+    only = language_corpus("ASL-SYN", [c for i, c in enumerate(clips) if i % 2], [], spec, TINY)
+    assert only.gloss_source == "annotated"  # one source: its name alone
+    assert language_corpus("ASL-SYN", clips, [], spec,
+                           dataclasses.replace(TINY, gloss_ctc_weight=0.0)).gloss_source == "none"
+    with pytest.raises(ValueError, match=r"backtranslation.gloss_ctc_weight: expected >= 0, got -1"):
+        BackTranslationConfig(gloss_ctc_weight=-1)
+
+
 def test_pipeline_trains_one_model_per_language(shards_data, pipeline_models):
     out = shards_data.backtranslation_dir
     assert sorted(p.name for p in out.glob("*.pt")) == ["ASL-SYN.pt", "CSL-SYN.pt"]

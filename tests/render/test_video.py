@@ -299,3 +299,42 @@ def test_panels_sit_side_by_side_under_their_labels_with_white_gaps():
         side_by_side([tall], ["a", "b"])
     with pytest.raises(ValueError, match="0 panels"):
         side_by_side([], [])
+
+
+def test_the_fit_comparison_strip_is_titled_with_the_clips_reprojection_and_joint_errors(body, tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    from m3t.camera import Camera
+    from m3t.render.skeleton import render_fit_comparison
+
+    titles: list[str] = []
+    original = matplotlib.figure.Figure.suptitle
+    monkeypatch.setattr(matplotlib.figure.Figure, "suptitle",
+                        lambda fig, text, **kw: titles.append(text) or original(fig, text, **kw))
+    camera = Camera(500.0, 500.0, 64.0, 64.0, ((1, 0, 0), (0, -1, 0), (0, 0, -1)), (0.0, 1.0, 3.0), 128, 128)
+    params = {k: v.numpy() for k, v in body.rest_params(3).items()}
+    identity = body.default_identity().numpy()
+
+    class Fitted:  # the fields the strip reads of a FittedClip
+        clip = type("C", (), {"id": "clip-7"})()
+
+        def __init__(self, metrics):
+            self.params, self.identity, self.camera, self.metrics = params, identity, camera.as_dict(), metrics
+
+    path = render_fit_comparison(body, Fitted({"reproj_px": 3.26, "joint_mm": 12.4}), (params, identity, camera),
+                                 tmp_path / "strip.png", frames=2)
+    assert path.stat().st_size > 0
+    render_fit_comparison(body, Fitted({}), None, tmp_path / "alone.png", frames=2)
+    assert titles == ["clip-7: reprojection 3.3 px, joints 12 mm vs ground truth", "clip-7: reprojection nan px"]
+
+
+def test_camera_tensors_take_the_asked_dtype():
+    import torch
+
+    from m3t.camera import Camera, camera_tensors
+
+    camera = Camera(500.0, 510.0, 64.0, 60.0, ((1, 0, 0), (0, 1, 0), (0, 0, 1)), (0.0, 1.0, 3.0), 128, 128)
+    rotation, translation, intrinsics = camera_tensors(camera, torch.float64)
+    assert {rotation.dtype, translation.dtype, intrinsics.dtype} == {torch.float64}
+    assert intrinsics.tolist() == [500.0, 510.0, 64.0, 60.0] and translation.tolist() == [0.0, 1.0, 3.0]
+    assert {t.dtype for t in camera_tensors(camera)} == {torch.float32}

@@ -295,3 +295,56 @@ def test_the_length_penalty_is_symmetric_in_too_long_and_too_short():
     assert length_penalty(20, 10) == length_penalty(5, 10) == 2.0  # twice too long, twice too short
     assert length_penalty(1, 40) == 40.0  # one frame for forty: the raw DTW cost alone would not see it
     assert length_penalty(0, 10) == float("inf")
+
+
+def test_the_smlms_generation_is_scored_and_judged_beside_the_trained_systems(trained, body, shards_dir, tmp_path,
+                                                                                capsys):
+    """When generate-smlm wrote the split, its decoded motion is posed into the same skeleton and scored and
+    judged like PT and SGSA (the ``smlm`` rows). The "generation" here is the test clips' own tokens under tiny
+    untrained tokenizers (what generate-smlm writes, without an SMLM); one clip has no tokens (an empty
+    generation: the rest pose)."""
+    import shutil
+
+    from m3t.shards.tokens import TokenClip, write_token_shard
+    from m3t.tokenizers.checkpoint import save_tokenizer
+    from m3t.tokenizers.config import TokenizerConfig
+    from m3t.tokenizers.data import GROUPS, clip_sequences, normalisation
+    from m3t.tokenizers.tokenize import load_tokenizers, tokenize_clip
+    from m3t.tokenizers.vae import MotionTokenizer
+
+    params, _ = trained
+    shutil.copytree(params.data.models_dir, tmp_path / "models")  # the module's trained systems and judge
+    data = dataclasses.replace(params.data, models_dir=str(tmp_path / "models"), generated_dir=str(tmp_path / "gen"),
+                               metrics_dir=str(tmp_path / "metrics"))
+    torch.manual_seed(0)
+    train = read_split([shards_dir], "train")
+    for group in GROUPS:
+        seqs = [s for f in train for s in clip_sequences(f.params, group)]
+        model = MotionTokenizer(TokenizerConfig(width=16, depth=1).vae_config(group, seqs[0].shape[1]))
+        model.set_normalisation(*normalisation(seqs))
+        save_tokenizer(data.tokenizers_dir / f"{group}.pt", model.eval(), group, 1, 1, "v", {})
+    tokenizers, info = load_tokenizers(data.tokenizers_dir)
+    test = read_split([shards_dir], "test")
+    generated = [tokenize_clip(tokenizers, f) for f in test]
+    empty = generated[0]
+    generated[0] = TokenClip(empty.clip, 0, {s: np.zeros(0, np.int64) for s in empty.tokens})
+    data.generated.mkdir(parents=True)
+    write_token_shard(data.generated / "generated.parquet", generated, info)
+
+    cfg = dataclasses.replace(params.sgsa_evaluate, splits=("test",), render_clips=1)
+    summary = run_evaluate(params.sgsa, cfg, body, data, params.backtranslation, progress=True)
+    assert "dtw" in capsys.readouterr().err  # the DTW progress bar, when asked for
+    assert summary["smlm/test/clips"] == len(test) == summary["test/clips"]
+    for key in ("dtw_jpe_mean_m", "dtw_jpe_body_m", "dtw_jpe_hand_m"):
+        assert np.isfinite(summary[f"smlm/test/{key}"]) and summary[f"smlm/test/{key}"] > 0
+    assert summary["smlm/test/dtw_jpe_mean_m"] == pytest.approx(
+        0.5 * (summary["smlm/test/dtw_jpe_body_m"] + summary["smlm/test/dtw_jpe_hand_m"]))
+    assert "smlm/test/bt/slt_bleu4" in summary
+    out = data.metrics("sgsa")
+    rows = [line.split(",") for line in (out / "per_clip.csv").read_text().splitlines()[1:]]
+    assert sorted(r[2] for r in rows if r[0] == "smlm") == sorted(f.clip.id for f in test)
+    judged = [line.split(",") for line in (out / "backtranslation.csv").read_text().splitlines()[1:]]
+    sentences = sorted(r[2] for r in judged if r[0] == "ground_truth")  # every sentence clip of the split
+    assert sorted(r[2] for r in judged if r[0] == "smlm") == sentences and sentences
+    # the video of the shown clip has the SMLM's skeleton beside the systems'
+    assert len(list((out / "videos").glob("*.mp4"))) == 1

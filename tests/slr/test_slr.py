@@ -328,6 +328,15 @@ def test_train_and_evaluate_write_tab4_outputs(data, corpus, tokenizers, body, t
     with open(out / "predictions.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 * n_test and {r["variant"] for r in rows} == {"full", "no_face"}
+    # the pair hit is scored on confusing clips only (the synthetic pairs hold every confusing target)
+    assert {r["correct_pair"] for r in rows if r["subset"] == "confusing"} <= {"0", "1"}
+    assert {r["correct_pair"] for r in rows if r["subset"] != "confusing"} == {""}
+    assert sum(r["subset"] == "confusing" for r in rows) == 2 * result.evaluations["full"].scores["confusing"].clips
+    assert (result.summary["clips"], result.summary["skipped"], result.summary["classes"]) == (n_test, 0.0, 4.0)
+    from m3t.slr.evaluate import evaluations_from_flat
+
+    again = evaluations_from_flat(result.summary)["full"].scores["confusing"]
+    assert again.pair_clips == result.evaluations["full"].scores["confusing"].pair_clips > 0
     table = (out / "table.md").read_text()
     assert "w/o face" in table and "chance" in table and "Conf. T-1" in table
     with open(out / "table.csv", newline="") as fh:

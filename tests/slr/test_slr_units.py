@@ -108,3 +108,88 @@ def test_the_recognition_table_is_the_newest_finished_run_full_probe_first():
     assert "synthetic, test split; accuracies in %, [90% percentile bootstrap interval over clips]." in table
     assert "Overall: 8 clip(s) of 4 class(es)" in table and "Subsets unavailable: no subset list" in table
     assert recognition_table([slr_run("failed", 1.0, status="FAILED")]).startswith("no finished evaluate-slr runs")
+
+
+# --------------------------------------------------------------------------------------------- the probe's pooling
+def _probe(pooling: str, streams: tuple[str, ...] = ("body",)):
+    import torch
+
+    from m3t.slr.config import SLRConfig
+    from m3t.slr.model import ProbeDims, SLRProbe
+
+    torch.manual_seed(0)
+    probe = SLRProbe(SLRConfig(layers=1, heads=2, dropout=0.0, max_steps=8, pooling=pooling), ProbeDims(4, 3, streams))
+    return probe.eval()
+
+
+def _features(steps: int, streams: tuple[str, ...] = ("body",), batch: int = 2):
+    import torch
+
+    generator = torch.Generator().manual_seed(1)
+    return {s: torch.randn(batch, steps, 4, generator=generator) for s in streams}
+
+
+def test_mean_pooling_is_the_mean_of_the_encoder_outputs_over_the_valid_positions_only():
+    """One valid step of one stream is one position: the pooled vector is that position's encoder output itself
+    (a divisor other than the number of valid positions would scale it); padding steps change nothing."""
+    import torch
+
+    probe = _probe("mean")
+    features = _features(3)
+    mask = torch.tensor([[True, False, False], [True, True, False]])
+    with torch.no_grad():
+        logits = probe(features, mask)
+        x, valid = probe.sequence(features, mask)
+        h = probe.encoder(x, src_key_padding_mask=~valid)
+        expected = torch.stack([h[0, :1].mean(0), h[1, :2].mean(0)])
+        assert torch.allclose(logits, probe.head(expected), atol=1e-6)
+        # the same clips without their padding steps: the same logits (padding is masked out of attention and pool)
+        alone = [probe({"body": features["body"][i: i + 1, :n]}, torch.ones(1, n, dtype=torch.bool))
+                 for i, n in enumerate((1, 2))]
+    assert torch.allclose(logits, torch.cat(alone), atol=1e-5)
+
+
+def test_cls_pooling_reads_the_learned_token_prepended_to_every_clip():
+    import torch
+
+    probe = _probe("cls")
+    features = _features(2)
+    mask = torch.tensor([[True, False], [True, True]])
+    with torch.no_grad():
+        logits = probe(features, mask)
+        x, valid = probe.sequence(features, mask)
+        x = torch.cat([probe.cls.expand(2, -1, -1), x], dim=1)
+        valid = torch.cat([torch.ones(2, 1, dtype=torch.bool), valid], dim=1)
+        h = probe.encoder(x, src_key_padding_mask=~valid)
+        assert torch.allclose(logits, probe.head(h[:, 0]), atol=1e-6)
+        alone = probe({"body": features["body"][:1, :1]}, torch.ones(1, 1, dtype=torch.bool))
+    assert logits.shape == (2, 3) and torch.allclose(logits[:1], alone, atol=1e-5)
+
+
+def test_the_bootstrap_interval_is_the_same_with_the_default_seed_and_seed_0():
+    from m3t.slr.evaluate import Score, bootstrap_ci
+
+    hits = (np.arange(97) % 7 < 3).astype(float)  # 42 hits in 97 clips: many distinct resampled means
+    assert bootstrap_ci(hits, 50) == bootstrap_ci(hits, 50, seed=0)
+    assert bootstrap_ci(hits, 50, seed=0) != bootstrap_ci(hits, 50, seed=1)  # the seed is really used
+    score = Score.of(hits, 50.0, 50, 0.95, 0)
+    assert (score.ci_low, score.ci_high) == bootstrap_ci(hits, 50) and score.value == pytest.approx(100 * 42 / 97)
+
+
+def test_evaluations_come_back_from_a_runs_flat_metrics_with_every_count():
+    from m3t.slr.evaluate import evaluations_from_flat
+
+    flat = {"full/overall/top1": 50.0, "full/overall/top1_ci_low": 40.0, "full/overall/top1_ci_high": 60.0,
+            "full/overall/top1_chance": 25.0, "full/overall/top5": 90.0, "full/overall/clips": 12.0,
+            "full/overall/classes": 4.0,
+            "full/confusing/top1": 30.0, "full/confusing/clips": 6.0, "full/confusing/classes": 4.0,
+            "full/confusing/pair_top1": 70.0, "full/confusing/pair_clips": 6.0,
+            "full/normal/top1": 70.0, "full/normal/clips": 6.0, "full/normal/classes": 4.0,
+            "clips": 12.0}  # a key that is not <variant>/<subset>/<key> is not a score
+    ev = evaluations_from_flat(flat)["full"]
+    overall, confusing = ev.scores["overall"], ev.scores["confusing"]
+    assert (overall.clips, overall.classes, overall.top1.value, overall.top1.ci_low, overall.top1.chance) == \
+        (12, 4, 50.0, 40.0, 25.0)
+    assert overall.top5.value == 90.0 and np.isnan(overall.top5.ci_low) and overall.pair_top1 is None
+    assert confusing.pair_top1.value == 70.0 and confusing.pair_clips == 6 and overall.pair_clips == 0
+    assert ev.subsets_available and set(ev.scores) == {"overall", "confusing", "normal"}

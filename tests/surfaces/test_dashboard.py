@@ -293,3 +293,46 @@ def test_the_videos_page_shows_the_newest_finished_runs_videos_grouped_by_clip(t
     assert 'src="media/evaluate-sgsa/c1.mp4"></video><figcaption>PT / SGSA / SMLM, skeletons (evaluate-sgsa sg)' in page
     assert (tmp_path / "site" / "media" / "evaluate-smlm" / "c1.mp4").read_bytes() == b"new"  # copied beside the page
     assert "No rendered video yet" in videos([], tmp_path / "m")
+
+
+def test_the_codebooks_page_compares_the_newest_run_of_each_quantizer(tmp_path):
+    """Stored runs made by hand: two quantizers (an older FSQ run that must not show), their utilisation
+    bars, the statistics table and a token-frequency figure per group that has token counts."""
+    from dashboards.sections.codebooks import codebooks
+    from m3t.experiment import RunRecord
+
+    def run(run_id, quantizer, start, util, groups=("body", "hand")):
+        folder = tmp_path / run_id / "plots"
+        folder.mkdir(parents=True)
+        for i, group in enumerate(groups):
+            (folder / f"tokens_{group}.json").write_text(json.dumps(
+                {"group": group, "counts": [5, 1, 0, 3 + i], "codebook_size": 4}))
+        metrics = {f"{g}/utilisation_pct": util for g in ("body", "hand", "face")} | {"body/tokens_per_code": 2.25}
+        return RunRecord(run_id, "train-tokenizers", start, "FINISHED", {}, metrics, folder.parent,
+                         {"quantizer": quantizer})
+
+    params = load_params(ROOT / "params.yaml")
+    page = codebooks([run("new-fsq", "fsq", 3, 75.0), run("vq", "vq", 2, 50.0, ("body",)),
+                      run("old-fsq", "fsq", 1, 10.0)], params)
+    assert 'id="utilisation"' in page and 'id="tokens-body"' in page and 'id="tokens-hand"' in page
+    assert 'id="tokens-face"' not in page  # no run counted face tokens
+    rows = _table(page, "codebook-stats")
+    assert rows[0] == ["quantizer", "group", "util %", "perplexity / K", "count SD", "tokens / K"]
+    assert [r[:3] for r in rows[1:]] == [["FSQ", "body", "75.0"], ["FSQ", "hand", "75.0"], ["FSQ", "face", "75.0"],
+                                         ["VQ", "body", "50.0"], ["VQ", "hand", "50.0"], ["VQ", "face", "50.0"]]
+    assert rows[1][5] == "2.2" or rows[1][5] == "2.3"  # tokens per code at one digit (2.25: either rounding)
+    assert "Only one quantizer" not in page
+    alone = codebooks([run("single", "fsq", 4, 60.0)], params)
+    assert "Only one quantizer" in alone and "FSQ (4 codes)" in alone
+    assert "No tokenizer run yet" in codebooks([], params)
+
+
+def test_every_paper_table_has_its_anchor_and_the_measured_tables_their_ids():
+    from dashboards.sections.tables import paper_tables
+
+    page = paper_tables([])
+    anchors = re.findall(r'<h2 id="([^"]+)">', page)
+    assert anchors == ["m3t-tab1", "m3t-tab2", "m3t-tab3", "m3t-tab4", "sgsa-tab1", "sgsa-tab2", "sgsa-tab3"]
+    # with no runs, the tables whose layout is fixed still show it, under <anchor>-measured
+    assert re.findall(r'<table id="([^"]+)"', page) == ["m3t-tab3-measured", "sgsa-tab1-measured",
+                                                        "sgsa-tab2-measured"]

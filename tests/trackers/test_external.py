@@ -112,3 +112,24 @@ def test_files_that_would_run_code_are_refused(tmp_path):
         load_tracker_file(tmp_path / "evil.npz")
     with pytest.raises(TrackerFileError, match="does not exist"):
         read_nlf(tmp_path / "missing.npz")
+
+
+def test_an_nlf_file_with_frame_indices_keeps_them_and_drops_the_lost_frames(fx, truth, tmp_path):
+    """A stacked NLF file may carry ``frame_index`` (a video read every other frame from frame 10, say): the
+    estimates keep those indices, not their row numbers, and a row NLF lost (NaN) is dropped with its index."""
+    written = dict(np.load(write_nlf(tmp_path / "rows.npz", fx.layout, truth)))
+    np.savez(tmp_path / "indexed.npz", **written, frame_index=10 + 2 * np.arange(T))
+    nlf = read_nlf(tmp_path / "indexed.npz")
+    assert list(nlf.frame) == [10 + 2 * t for t in range(T) if t != 2]
+    assert list(read_nlf(tmp_path / "rows.npz").frame) == [t for t in range(T) if t != 2]
+
+
+def test_a_frame_folder_with_unnumbered_names_plays_in_name_order(tmp_path):
+    from m3t.trackers.media import list_frame_files
+
+    for name in ("b.png", "frame10.png", "a.jpg", "frame9.png", "notes.txt"):
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name for p in list_frame_files(tmp_path)] == ["a.jpg", "b.png", "frame10.png", "frame9.png"]
+    (tmp_path / "a.jpg").unlink()
+    (tmp_path / "b.png").unlink()
+    assert [p.name for p in list_frame_files(tmp_path)] == ["frame9.png", "frame10.png"]  # all numbered: by number
