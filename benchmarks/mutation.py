@@ -18,8 +18,9 @@ are detected. It *survived* when every test passes, and has *no tests* when no s
 
 A module is a package of ``m3t`` (``sgsa``), a top-level module of ``m3t`` by its name (``experiment``) or
 ``dashboards``. A draw from some modules keeps, in the report, the last figures of the others (an earlier run's,
-with its commit); ``--exclude-sample`` leaves out the mutants of an earlier draw (its ``mutants/sample.json``,
-copied aside), so the new draw holds none that tests were written against after reading the earlier one.
+with its commit); ``--exclude-sample`` (repeatable) leaves out the mutants of an earlier draw (its
+``mutants/sample.json``, copied aside), so the new draw holds none that tests were written against after reading
+an earlier one.
 
 The mutants whose survival new tests were written against are listed in ``benchmarks/mutation_targeted.json``;
 the report also rates the sample without any mutant of their functions (the estimate no test was tuned to: the
@@ -203,7 +204,7 @@ def drawn_from(result: dict) -> str:
     if result.get("modules_drawn"):
         parts.append(f"drawn from {', '.join(result['modules_drawn'])} only")
     if result.get("excluded"):
-        parts.append(f"leaving out the {result['excluded']} mutants of an earlier draw (a fresh draw)")
+        parts.append(f"leaving out the {result['excluded']} mutants of earlier draws (a fresh draw)")
     return f", {'; '.join(parts)}" if parts else ""
 
 
@@ -301,9 +302,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--modules", default="", help="draw the sample from these modules only, comma separated "
                         "(e.g. 'sgsa,slr,experiment,dashboards'; a package of m3t, a top-level module of m3t by its "
                         "name, or 'dashboards'); the report keeps an earlier run's rows of the other modules")
-    parser.add_argument("--exclude-sample", default="", help="a sample file (mutants/sample.json of an earlier draw, "
-                        "copied aside) whose mutants are left out of the population: a fresh draw, none of whose "
-                        "mutants a test was written against after reading the earlier draw's survivors")
+    parser.add_argument("--exclude-sample", action="append", default=[], help="a sample file (mutants/sample.json "
+                        "of an earlier draw, copied aside) whose mutants are left out of the population: a fresh "
+                        "draw, none of whose mutants a test was written against after reading the earlier draw's "
+                        "survivors (repeatable: every earlier draw)")
     parser.add_argument("--retest", default="", help="also retest the sample's mutants of these statuses, comma "
                         "separated (e.g. 'survived' after adding tests, 'timeout' after changing the timeout)")
     parser.add_argument("--report-only", action="store_true", help="write the report from the stored verdicts")
@@ -327,7 +329,7 @@ def main(argv: list[str] | None = None) -> dict:
             unknown = set(modules) - {r["module"] for r in stored}
             if unknown:  # a module without a function to mutate (or a misspelt one): said, not fatal
                 print(f"--modules: no mutants in {sorted(unknown)}", flush=True)
-            excluded = set(json.loads(Path(args.exclude_sample).read_text())["names"]) if args.exclude_sample else set()
+            excluded = {name for file in args.exclude_sample for name in json.loads(Path(file).read_text())["names"]}
             population = sorted(r["name"] for r in stored if (not modules or r["module"] in modules)
                                 and r["name"] not in excluded)
             chosen = draw(population, args.sample, args.seed)

@@ -98,5 +98,5 @@ def test_a_run_over_some_modules_keeps_the_earlier_figures_of_the_others(tmp_pat
     assert kept == [core]
     assert mutation.earlier_runs(new, tmp_path / "none.json") == []
     assert mutation.drawn_from({"modules_drawn": ["sgsa", "slr"], "excluded": 300}) == (
-        ", drawn from sgsa, slr only; leaving out the 300 mutants of an earlier draw (a fresh draw)")
+        ", drawn from sgsa, slr only; leaving out the 300 mutants of earlier draws (a fresh draw)")
     assert mutation.drawn_from({}) == ""

@@ -336,3 +336,93 @@ def test_every_paper_table_has_its_anchor_and_the_measured_tables_their_ids():
     # with no runs, the tables whose layout is fixed still show it, under <anchor>-measured
     assert re.findall(r'<table id="([^"]+)"', page) == ["m3t-tab3-measured", "sgsa-tab1-measured",
                                                         "sgsa-tab2-measured"]
+
+
+def _record(run_id: str, stage: str, start: int, status: str = "FINISHED", **tags):
+    from m3t.experiment import RunRecord
+
+    return RunRecord(run_id, stage, start, status, {"p": run_id}, {"m": 1.0}, None,
+                     {"mlflow.runName": f"{stage} {run_id}", **tags})
+
+
+def test_the_overview_counts_runs_per_stage_and_names_the_newest():
+    from dashboards.sections.runs import overview
+
+    params = load_params(ROOT / "params.yaml")
+    runs = [_record("c3", "train-smlm", 3_000_000, "FAILED"), _record("b2", "train-smlm", 2_000_000, scheduled="true"),
+            _record("a1", "fit-corpus", 1_000_000)]  # newest first, as fetch_runs gives them
+    page = overview(runs, params, ROOT)
+    assert page.startswith(f"<p>3 runs in experiment <code>{params.experiment.experiment}</code>")
+    rows = _table(page, "stages")
+    assert rows[0] == ["stage", "runs", "finished", "scheduled", "newest run", "started", "status"]
+    assert [r[:5] + r[6:] for r in rows[1:]] == [["fit-corpus", "1", "1", "0", "fit-corpus a1", "FINISHED"],
+                                               ["train-smlm", "2", "1", "1", "train-smlm c3", "FAILED"]]
+    assert "No runs in the MLflow store yet" in overview([], params, ROOT)
+
+
+def test_the_runs_page_lists_every_run_with_its_tags_and_the_data_the_comparison_reads():
+    from dashboards.sections.runs import runs_page
+
+    runs = [_record("b2</script>", "train-smlm", 2_000_000, variant="fsq"), _record("a1", "fit-corpus", 1_000_000)]
+    page = runs_page(runs)
+    options = re.findall(r"<option>([^<]+)</option>", page)
+    assert options == ["fit-corpus", "train-smlm"]  # the stage filter, sorted
+    rows = [re.findall(r"<td>(.*?)</td>", row) for row in re.findall(r"<tr data-stage[^>]*>(.*?)</tr>", page)]
+    assert rows[0][0] == '<input type=checkbox class=pick value="b2&lt;/script&gt;">'
+    assert rows[0][1:] == ["train-smlm b2&lt;/script&gt;", "train-smlm", "FINISHED", rows[0][4], "b2&lt;/scri",
+                           "variant=fsq", "1"]
+    assert 'data-stage="fit-corpus" data-tags=""' in page and "<span id=shown>2</span>" in page
+    payload = json.loads(re.search(r'<script type="application/json" id="run-data">(.*?)</script>', page,
+                                   re.S).group(1))
+    assert payload["a1"] == {"name": "fit-corpus a1", "params": {"p": "a1"}, "metrics": {"m": 1.0}}
+    assert payload["b2</script>"]["name"] == "train-smlm b2</script>"  # escaped in the page, whole in the data
+    assert "No runs yet" in runs_page([])
+
+
+def test_the_quality_page_shows_each_corpus_report_its_quarantine_and_per_clip_figures(tmp_path):
+    from dashboards.sections.quality import quality
+
+    params = load_params(ROOT / "params.yaml", overrides={"data": {"shards_root": str(tmp_path)}})
+    corpora = list(params.corpora)
+    folder = params.data.shards_dir(corpora[0])
+    folder.mkdir(parents=True)
+    (folder / "quality.json").write_text(json.dumps({"clips_fitted": 3, "reproj_px_mean": 2.345678, "corpus": "x",
+                                                     "quarantine_reasons": {"no person detected": 2}}))
+    (folder / "quality.csv").write_text("clip_id,status,reproj_px,missing_left_hand,missing_right_hand,missing_face\n"
+                                        "a,fitted,2.0,0.1,0.0,0.5\nb,quarantined,,,,\nc,fitted,3.0,0.0,0.2,\n")
+    page = quality(params)
+    assert _table(page, f"quality-{corpora[0]}")[1:] == [["clips_fitted", "3"], ["reproj_px_mean", "2.346"]]
+    assert "no person detected" in page and "no clip quarantined" not in page
+    assert f'id="reproj-{corpora[0]}"' in page and f'id="missing-{corpora[0]}"' in page
+    for corpus in corpora[1:]:  # the others: not fitted yet, and no figure
+        assert f'id="reproj-{corpus}"' not in page
+    assert page.count("Not fitted yet") == len(corpora) - 1
+
+
+def test_the_curves_page_draws_one_figure_per_metric_of_each_training_runs_history(tmp_path):
+    from dashboards.sections.curves import curves
+    from m3t.experiment import ExperimentConfig, fetch_runs, start_run
+
+    experiment = ExperimentConfig(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}",
+                                  artifact_dir=str(tmp_path / "mlruns"))
+    with start_run(experiment, "train-slr", tmp_path, variant="full") as run:
+        for epoch in (1, 2, 3):
+            run.log_metrics({"full/train_loss": 1.0 / epoch, "no_face/train_loss": 2.0 / epoch,
+                             "full/val_top1": 10.0 * epoch, "full/epoch": float(epoch)}, step=epoch)
+        run.log_metrics({"train_clips": 12.0})  # one point: not a curve
+    with start_run(experiment, "evaluate-slr", tmp_path) as run:  # not a training stage
+        for epoch in (1, 2):
+            run.log_metrics({"loss": 1.0}, step=epoch)
+    runs = fetch_runs(experiment, tmp_path)
+    page = curves(runs, experiment, tmp_path)
+    slr = next(r for r in runs if r.stage == "train-slr")
+    assert re.findall(r"<h2>([^<]+)</h2>", page) == [run_name_of(slr)]
+    ids = re.findall(r'id="(curve-[^"]+)"', page)
+    assert ids == [f"curve-{slr.run_id[:8]}-0", f"curve-{slr.run_id[:8]}-1"]  # train_loss, val_top1: no epoch
+    assert page.count('"name":"full"') == 2 and page.count('"name":"no_face"') == 1
+    assert len(re.findall(r'id="curve-', curves(runs, experiment, tmp_path, max_figures=1))) == 1
+    assert "No training run with per-epoch metrics yet" in curves([], experiment, tmp_path)
+
+
+def run_name_of(record) -> str:
+    return record.tags.get("mlflow.runName", record.stage)
