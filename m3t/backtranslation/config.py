@@ -34,13 +34,14 @@ class BackTranslationConfig:
     length_penalty: float = 1.0  # decode-time: beam length penalty alpha, ((5 + len) / 6) ** alpha (JoeyNMT)
 
     def __post_init__(self) -> None:
+        # counts first: a head count of 0 is named, not a division by zero in the width check below
+        for key in ("attention_heads", "encoder_layers", "decoder_layers", "max_frames", "max_text_tokens",
+                    "beam_size", "min_token_frequency"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"backtranslation.{key}: expected >= 1, got {getattr(self, key)}")
         if self.d_model % self.attention_heads:
             raise ValueError(f"backtranslation.d_model {self.d_model} is not divisible by attention_heads "
                              f"{self.attention_heads}")
-        for key in ("encoder_layers", "decoder_layers", "max_frames", "max_text_tokens", "beam_size",
-                    "min_token_frequency"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"backtranslation.{key}: expected >= 1, got {getattr(self, key)}")
         if self.gloss_ctc_weight < 0:
             raise ValueError(f"backtranslation.gloss_ctc_weight: expected >= 0, got {self.gloss_ctc_weight}")
 

@@ -44,16 +44,17 @@ class SGSAConfig:
     min_frames: int = 4  # counter decoding never ends a sequence before this frame (m3t.sgsa.model.CounterStop)
 
     def __post_init__(self) -> None:
+        # counts first: a head count of 0 is named, not a division by zero in the width checks below
+        for key in ("encoder_layers", "encoder_heads", "decoder_heads", "standard_layers", "max_frames",
+                    "max_text_tokens", "min_token_frequency", "min_frames"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"sgsa.{key}: expected >= 1, got {getattr(self, key)}")
         if self.encoder_width % self.encoder_heads:
             raise ValueError(f"sgsa.encoder_width {self.encoder_width} is not divisible by encoder_heads "
                              f"{self.encoder_heads}")
         if self.decoder_layers == 0 and self.standard_width % self.decoder_heads:
             raise ValueError(f"sgsa.standard_width {self.standard_width} is not divisible by decoder_heads "
                              f"{self.decoder_heads}")
-        for key in ("encoder_layers", "encoder_heads", "decoder_heads", "standard_layers", "max_frames",
-                    "max_text_tokens", "min_token_frequency", "min_frames"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"sgsa.{key}: expected >= 1, got {getattr(self, key)}")
         if self.decoder_layers < 0 or self.temporal_adjacency < 0:
             raise ValueError(f"sgsa.decoder_layers / temporal_adjacency: expected >= 0, got {self.decoder_layers} / "
                              f"{self.temporal_adjacency}")
