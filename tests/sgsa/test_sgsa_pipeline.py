@@ -331,10 +331,11 @@ def test_the_smlms_generation_is_scored_and_judged_beside_the_trained_systems(tr
     data.generated.mkdir(parents=True)
     write_token_shard(data.generated / "generated.parquet", generated, info)
 
-    cfg = dataclasses.replace(params.sgsa_evaluate, splits=("test",), render_clips=1)
+    cfg = dataclasses.replace(params.sgsa_evaluate, splits=("dev", "test"), render_clips=1)
     summary = run_evaluate(params.sgsa, cfg, body, data, params.backtranslation, progress=True)
     assert "dtw" in capsys.readouterr().err  # the DTW progress bar, when asked for
-    assert summary["smlm/test/clips"] == len(test) == summary["test/clips"]
+    assert not any(k.startswith("smlm/dev/") for k in summary)  # generate-smlm wrote the test split only
+    assert summary["smlm/test/clips"] == len(test) == summary["test/clips"] and summary["dev/clips"] > 0
     for key in ("dtw_jpe_mean_m", "dtw_jpe_body_m", "dtw_jpe_hand_m"):
         assert np.isfinite(summary[f"smlm/test/{key}"]) and summary[f"smlm/test/{key}"] > 0
     assert summary["smlm/test/dtw_jpe_mean_m"] == pytest.approx(
@@ -344,7 +345,20 @@ def test_the_smlms_generation_is_scored_and_judged_beside_the_trained_systems(tr
     rows = [line.split(",") for line in (out / "per_clip.csv").read_text().splitlines()[1:]]
     assert sorted(r[2] for r in rows if r[0] == "smlm") == sorted(f.clip.id for f in test)
     judged = [line.split(",") for line in (out / "backtranslation.csv").read_text().splitlines()[1:]]
-    sentences = sorted(r[2] for r in judged if r[0] == "ground_truth")  # every sentence clip of the split
+    sentences = sorted(r[2] for r in judged if r[0] == "ground_truth" and r[1] == "test")  # the split's sentences
     assert sorted(r[2] for r in judged if r[0] == "smlm") == sentences and sentences
     # the video of the shown clip has the SMLM's skeleton beside the systems'
     assert len(list((out / "videos").glob("*.mp4"))) == 1
+
+
+def test_evaluation_without_checkpoints_names_the_stage_to_run(tmp_path):
+    from m3t.sgsa.pipeline import load_systems
+    from m3t.shards.folders import DataConfig
+
+    data = DataConfig(models_dir=str(tmp_path / "models"))
+    with pytest.raises(FileNotFoundError, match=r"no SGSA / PT checkpoint in .*sgsa; run `dvc repro train-sgsa` "
+                                                r"\(python -m m3t.stages.train_sgsa\) first$"):
+        load_systems(data)
+    data.sgsa_dir.mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="no SGSA / PT checkpoint"):
+        load_systems(data)  # an empty folder too

@@ -346,3 +346,57 @@ def test_train_and_evaluate_write_tab4_outputs(data, corpus, tokenizers, body, t
     record = RunRecord("r", "evaluate-slr", 0, "FINISHED", {"slr_evaluate.confidence": "0.95"}, result.summary, None,
                        {"corpus": "synthetic", "split": "test"})
     assert recognition_table([record]) == table  # the CLI's table from the MLflow run is the file's
+
+
+@pytest.fixture(scope="module")
+def data_copy(data, tmp_path_factory):
+    """A copy of ``data``'s shards and tokenizers (the refusals below alter their files)."""
+    root = tmp_path_factory.mktemp("slr-refusals")
+    shutil.copytree(Path(data.shards_root), root / "shards")
+    shutil.copytree(Path(data.models_dir) / "tokenizers", root / "models" / "tokenizers")
+    return DataConfig(shards_root=str(root / "shards"), models_dir=str(root / "models"),
+                      metrics_dir=str(root / "metrics"))
+
+
+def test_evaluation_refuses_probes_of_another_corpus_tokenizers_or_label_set(data_copy, body, tokenizers, tmp_path):
+    from m3t.slr.checkpoint import load_slr as load
+
+    data = data_copy
+    run_train_slr(TINY_PROBE, dataclasses.replace(TINY_TRAIN, epochs=1, cache_dir=str(tmp_path / "cache")), body,
+                  data, progress=False)
+    cfg = SLREvaluateConfig(bootstrap=10, device="cpu")
+    with pytest.raises(ValueError, match=r"^the probes were trained on corpus 'synthetic', not 'other'; rerun "
+                                         r"train-slr with slr.corpus: other$"):
+        run_evaluate_slr(cfg, body, data, corpus="other")
+    # two checkpoints that disagree: the no-face probe saved under the full probe's name
+    full = Path(data.models_dir) / "slr" / "full.pt"
+    kept = full.read_bytes()
+    shutil.copy(Path(data.models_dir) / "slr" / "no_face.pt", full)
+    with pytest.raises(ValueError, match=r"slr/full\.pt holds variant 'no_face', not 'full'$"):
+        run_evaluate_slr(cfg, body, data)
+    full.write_bytes(kept)
+    assert load(full).meta.variant == "full"
+    # other tokenizers than those the probes were trained on
+    body_tokenizer = Path(data.tokenizers_dir) / "body.pt"
+    kept = body_tokenizer.read_bytes()
+    torch.manual_seed(5)
+    other = MotionTokenizer(TokenizerConfig(width=16, depth=1).vae_config("body", tokenizers["body"].cfg.input_dim))
+    save_tokenizer(body_tokenizer, other.eval(), "body", 1, 1, "v", {})
+    with pytest.raises(ValueError, match=r"are not those the probes were trained on \(digests differ\); rerun "
+                                         r"train-slr$"):
+        run_evaluate_slr(cfg, body, data)
+    body_tokenizer.write_bytes(kept)
+    # test clips whose labels the probes never saw
+    test_shard = data.shards_dir("synthetic") / "test.parquet"
+    kept = test_shard.read_bytes()
+    from m3t.shards.io import read_shard
+
+    shard = read_shard(test_shard)
+    relabelled = [dataclasses.replace(f, clip=dataclasses.replace(f.clip, label=(f.clip.label + 40)))
+                  for f in shard.clips if f.clip.label is not None]
+    write_shard(test_shard, relabelled, body.layout)
+    with pytest.raises(ValueError, match=r"^test clips of corpus 'synthetic' have labels \[40, 41, 42, 43\] the "
+                                         r"probes were not trained with; rerun train-slr$"):
+        run_evaluate_slr(cfg, body, data)
+    test_shard.write_bytes(kept)
+    assert run_evaluate_slr(cfg, body, data).summary["clips"] == len([f for f in shard.clips if f.clip.label is not None])
