@@ -15,7 +15,8 @@ default: the F1 of Lin 2004), then the mean over sentences. Text is compared as 
 **Definition "slt"** (:func:`slt_scores`, :func:`slt_translation_metrics`, :func:`slt_metrics_by_language`): the
 back-translation scoring of the field, the arithmetic of SL-T (Camgoz et al. 2020, ``neccam/slt``,
 ``signjoey/metrics.py`` over its vendored sacreBLEU 1.4.4 and MS-COCO ROUGE), copied unchanged by Progressive
-Transformers, SOKE and SignSparK_BT, re-implemented here (not pasted):
+Transformers and SignSparK_BT (SOKE kept its BLEU but not its ROUGE-L, and compares text as given: definition
+``soke``, :mod:`m3t.metrics.soke_text`), re-implemented here (not pasted):
 
 - text is lower-cased (SL-T's data pipeline, ``txt_lowercase: true``, does it before scoring) and split on
   whitespace (sacreBLEU ``raw_corpus_bleu``: ``tokenize="none"``; SL-T's ROUGE splits on single spaces, the same
