@@ -376,6 +376,7 @@ def test_bt_table_rows_ground_truth_then_variants_and_names_its_definition():
             run("evaluate-smlm", {"dtw_jpe_body_m": 1.0}, variant="no judge", start=0)]  # no bt/ metrics: no row
     table = backtranslation_table(gt, smlm)
     assert "definition 'slt'" in table and "beta 1.2" in table
+    assert "| motion | ASL R | ASL B4 | CSL R | CSL B4 |" in table  # ROUGE-L then BLEU-4 per language
     rows = [line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| motion |")]
     assert [r.split(" | ")[0].strip("| ") for r in rows] == [GT_ROW, "SMLM, production only", "SMLM, production + translation"]
     assert rows[0].split(" | ")[1:] == ["30.00", "11.50", "27.00", "7.00 |"]

@@ -338,3 +338,28 @@ def test_camera_tensors_take_the_asked_dtype():
     assert {rotation.dtype, translation.dtype, intrinsics.dtype} == {torch.float64}
     assert intrinsics.tolist() == [500.0, 510.0, 64.0, 60.0] and translation.tolist() == [0.0, 1.0, 3.0]
     assert {t.dtype for t in camera_tensors(camera)} == {torch.float32}
+
+
+def test_a_skeleton_frame_draws_each_bone_where_its_points_are_in_its_colour():
+    """x right and up up in [-extent, extent] map onto the picture: a horizontal bone at y = +extent / 2 lies in
+    the upper quarter row band, from x = -extent / 2 to 0 (columns 16 to 32 of 64); a bone to a NaN point is
+    not drawn."""
+    from m3t.render.skeleton_video import draw_skeleton
+
+    points = np.array([[-0.5, 0.5], [0.0, 0.5], [0.5, -0.5], [np.nan, 0.0]])
+    picture = draw_skeleton(points, [(0, 1), (2, 3)], size=64, extent=1.0, color=(200, 0, 0), thickness=1)
+    drawn = (picture != 255).any(-1)
+    rows, cols = np.nonzero(drawn)
+    assert set(rows) <= {15, 16, 17} and cols.min() >= 15 and cols.max() <= 33 and drawn[16, 16:33].all()
+    red, green, blue = picture[16, 20].astype(int)  # the bone's colour mid-line, blended at its anti-aliased edge
+    assert abs(red - 200) < 10 and green < 40 and blue < 40
+    assert not drawn[40:].any()  # the bone to the NaN point is left out
+
+
+def test_the_holistic_order_maps_each_header_point_to_the_model_point_of_its_name_or_none():
+    from m3t.render.posefile import _order
+
+    order = _order(("pose:nose", "left_hand:wrist"))
+    assert sorted(order[order >= 0].tolist()) == [0, 1] and (order == -1).sum() == len(order) - 2
+    with pytest.raises(ValueError, match=r"holistic correspondence names \['pose:tail'\] \(of 1\) match no point"):
+        _order(("pose:nose", "pose:tail"))

@@ -20,6 +20,7 @@ def test_an_empty_store_shows_what_to_run(tmp_path):
         "experiment": {"tracking_uri": f"sqlite:///{tmp_path / 'empty.db'}", "artifact_dir": str(tmp_path / "a")},
         "data": {"shards_root": str(tmp_path / "shards")}})
     index = build_dashboard(params, tmp_path / "site")
+    assert index == tmp_path / "site" / "index.html"  # the folder asked for, not experiment.dashboard_dir
     pages = {name: (index.parent / name).read_text() for name, _ in PAGES}
     assert "No runs in the MLflow store yet" in pages["index.html"] and "dvc repro" in pages["index.html"]
     assert "no finished evaluate-smlm runs yet" in pages["tables.html"]
@@ -100,7 +101,10 @@ def test_a_saved_study_shows_its_judged_claims_with_the_seed_halves_that_flip(tm
     page = saved_claims(path, "Tab. 3 study", "m3t study")
     assert "FSQ uses more codes" in page and "the SMLM claim" not in page  # judged rows only
     assert "seed halves: not reproduced / inconclusive" in page and "1 of 1 claims flip" in page
-    assert "m3t study" in saved_claims(tmp_path / "none.json", "Tab. 3 study", "m3t study")
+    assert '<table id="claims">' in page  # the judged rows' table, by its id
+    assert saved_claims(tmp_path / "none.json", "Tab. 3 study", "m3t study").startswith(
+        "<h2>Tab. 3 study</h2>") and "Not run yet: <code>m3t study</code>" in saved_claims(
+        tmp_path / "none.json", "Tab. 3 study", "m3t study")
 
 
 # ---- the documentation's generated pages (dashboards.docs_pages) from hand-made metrics files: each cell below is
@@ -397,6 +401,9 @@ def test_the_quality_page_shows_each_corpus_report_its_quarantine_and_per_clip_f
     for corpus in corpora[1:]:  # the others: not fitted yet, and no figure
         assert f'id="reproj-{corpus}"' not in page
     assert page.count("Not fitted yet") == len(corpora) - 1
+    (folder / "quality.json").write_text(json.dumps({"clips_fitted": 3, "quarantine_reasons": {}}))
+    clean = quality(params)
+    assert "no clip quarantined" in clean and "quarantine reason" not in clean
 
 
 def test_the_curves_page_draws_one_figure_per_metric_of_each_training_runs_history(tmp_path):
@@ -422,6 +429,17 @@ def test_the_curves_page_draws_one_figure_per_metric_of_each_training_runs_histo
     assert page.count('"name":"full"') == 2 and page.count('"name":"no_face"') == 1
     assert len(re.findall(r'id="curve-', curves(runs, experiment, tmp_path, max_figures=1))) == 1
     assert "No training run with per-epoch metrics yet" in curves([], experiment, tmp_path)
+
+
+
+def test_the_newest_finished_run_of_each_variant_is_shown():
+    from dashboards.sections.common import newest_per_variant
+
+    runs = [_record("c", "train-smlm", 3, "FAILED", variant="a"), _record("b", "train-smlm", 2, variant="b"),
+            _record("a2", "train-smlm", 2, variant="a"), _record("a1", "train-smlm", 1, variant="a"),
+            _record("x", "train-slr", 4, variant="a")]
+    assert [r.run_id for r in newest_per_variant(runs, "train-smlm")] == ["b", "a2"]
+    assert [r.run_id for r in newest_per_variant(runs, "train-smlm", limit=1)] == ["b"]
 
 
 def run_name_of(record) -> str:

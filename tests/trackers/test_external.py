@@ -133,3 +133,22 @@ def test_a_frame_folder_with_unnumbered_names_plays_in_name_order(tmp_path):
     (tmp_path / "a.jpg").unlink()
     (tmp_path / "b.png").unlink()
     assert [p.name for p in list_frame_files(tmp_path)] == ["frame9.png", "frame10.png"]  # all numbered: by number
+
+
+def test_tracker_fields_come_back_as_float64_numpy_whatever_their_stored_float_type(tmp_path):
+    from m3t.trackers.tracker_files import tracker_array
+
+    data = {"pose": torch.ones(2, 3, dtype=torch.float32), "betas": np.ones((2, 3), np.float16),
+            "frame_index": np.arange(2, dtype=np.int32)}
+    assert tracker_array(data, "pose", tmp_path / "t.pt").dtype == np.float64
+    assert tracker_array(data, "betas", tmp_path / "t.pt").dtype == np.float64
+    assert tracker_array(data, "frame_index", tmp_path / "t.pt").dtype == np.int32  # integers stay integers
+
+
+def test_an_nlf_file_of_per_frame_plain_lists_reads_like_one_of_tensors(fx, truth, tmp_path):
+    """``detect_smpl_batched``'s per-frame lists saved as plain nested lists (a converted output) read the same."""
+    tensors = torch.load(write_nlf(tmp_path / "nlf.pt", fx.layout, truth), weights_only=True)
+    torch.save({k: [t.tolist() for t in v] for k, v in tensors.items()}, tmp_path / "numpy.pt")
+    as_numpy, as_tensors = read_nlf(tmp_path / "numpy.pt"), read_nlf(tmp_path / "nlf.pt")
+    assert list(as_numpy.frame) == list(as_tensors.frame) == [t for t in range(T) if t != 2]
+    assert np.array_equal(as_numpy.rotations, as_tensors.rotations)

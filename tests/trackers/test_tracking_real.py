@@ -147,6 +147,7 @@ def test_frame_folder_order_and_errors(tmp_path):
         open_media(tmp_path)
     stream = open_media(tmp_path, fps=12.5)
     assert (stream.info.width, stream.info.height, stream.info.num_frames, stream.info.fps) == (6, 4, 3, 12.5)
+    assert stream.info.path == tmp_path and stream.info.kind == "frames"
     frames = list(stream.frames)
     assert [int(f[0, 0, 0]) for f in frames] == [1, 9, 10] and frames[0].dtype == np.uint8
 
@@ -307,3 +308,43 @@ def test_fitting_explains_real_fingerspelling(body):
         assert np.isfinite(result.metrics["reproj_px"]) and result.loss_curve[-1] < 0.2 * result.loss_curve[0]
         assert all(v.shape[0] == track.num_frames and np.isfinite(v).all() for v in result.params.values())
     assert np.mean(clip_means) < 0.07, clip_means
+
+
+def _landmarks(n: int, x: float, y: float, visibility: float | None = None):
+    """A MediaPipe landmark list as its protobuf reads: ``.landmark`` of points with x, y (normalised), z and, for
+    the pose, visibility and presence (``HasField``)."""
+    from types import SimpleNamespace
+
+    def point(i):
+        return SimpleNamespace(x=x + 0.001 * i, y=y, z=0.0, visibility=visibility,
+                               HasField=lambda name: False)
+    return SimpleNamespace(landmark=[point(i) for i in range(n)])
+
+
+def test_one_frames_results_fill_every_part_of_the_track_layout():
+    from types import SimpleNamespace
+
+    from m3t.trackers.mediapipe_holistic import LANDMARK_SET, NUM_LANDMARKS, results_to_arrays
+    from m3t.trackers.track import landmark_slices
+
+    parts = landmark_slices(LANDMARK_SET)
+    results = SimpleNamespace(pose_landmarks=_landmarks(33, 0.5, 0.25, visibility=0.8),
+                              left_hand_landmarks=None, right_hand_landmarks=_landmarks(21, 0.25, 0.5),
+                              face_landmarks=_landmarks(478, 0.75, 0.1), pose_world_landmarks=None)
+    frame = results_to_arrays(results, 200, 100)
+    assert frame.keypoints.shape == (NUM_LANDMARKS, 2)
+    assert np.allclose(frame.keypoints[parts["pose"]][0], (100.0, 25.0))  # normalised x, y times width, height
+    assert np.allclose(frame.keypoints[parts["right_hand"]][0], (50.0, 50.0))
+    assert np.allclose(frame.confidence[parts["pose"]], 0.8) and (frame.confidence[parts["right_hand"]] == 1).all()
+    assert np.isnan(frame.keypoints[parts["left_hand"]]).all() and (frame.confidence[parts["left_hand"]] == 0).all()
+    assert (frame.confidence[parts["face"]] == 1).all() and np.isnan(frame.pose_world).all()
+
+
+@pytest.mark.parametrize("image", [np.zeros((4, 4), np.uint8), np.zeros((4, 4, 4), np.uint8),
+                                   np.zeros((4, 4, 3), np.float32)])
+def test_an_image_that_is_not_hxwx3_uint8_is_refused_with_its_shape(image):
+    from m3t.trackers.mediapipe_holistic import _check_rgb
+
+    with pytest.raises(ValueError, match=r"expected an \(H, W, 3\) uint8 RGB image, got "):
+        _check_rgb(image)
+    assert _check_rgb(np.zeros((4, 4, 3), np.uint8)).flags.c_contiguous
