@@ -363,3 +363,32 @@ def test_the_holistic_order_maps_each_header_point_to_the_model_point_of_its_nam
     assert sorted(order[order >= 0].tolist()) == [0, 1] and (order == -1).sum() == len(order) - 2
     with pytest.raises(ValueError, match=r"holistic correspondence names \['pose:tail'\] \(of 1\) match no point"):
         _order(("pose:nose", "pose:tail"))
+
+
+def test_the_face_of_the_mediapipe_correspondence_is_drawn_with_the_joints(body):
+    from m3t.render.reconstruction import face_landmarks
+
+    face = face_landmarks(body)
+    assert face is not None and len(face.names) > 100 and all(n.startswith("face:") for n in face.names)
+    assert len(face.index) == len(face.names) == len(face.kind)
+
+
+def test_a_reconstruction_without_a_camera_is_drawn_from_the_front_in_both_colours(body, tmp_path):
+    """Motion without a stored camera (imported from 3D keypoints): an orthographic front view fitted to every
+    point of both sequences; the fitted clip in orange, the reconstruction in blue, each held once it ends."""
+    from types import SimpleNamespace
+
+    from m3t.render.reconstruction import render_reconstruction
+
+    params = {k: v.numpy() for k, v in body.rest_params(3).items()}
+    moved = {k: v.copy() for k, v in params.items()}
+    moved["body"] = moved["body"] + 0.3  # another pose: the two skeletons part
+    fitted = SimpleNamespace(params=params, identity=body.default_identity().numpy(), camera={},
+                             clip=SimpleNamespace(id="c", fps=12.5))
+    path = render_reconstruction(body, fitted, {k: v[:2] for k, v in moved.items()}, tmp_path / "r.mp4", size=96)
+    meta, frames = read_mp4(path)
+    assert len(frames) == 3 and 96 in meta["size"]  # the panel's longer side, a legend strip below
+    pixels = np.concatenate([f.reshape(-1, 3).astype(int) for f in frames])
+    orange = ((pixels[:, 0] > 200) & (pixels[:, 2] < 100)).sum()
+    blue = ((pixels[:, 2] > 150) & (pixels[:, 0] < 100)).sum()
+    assert orange > 20 and blue > 20

@@ -170,3 +170,14 @@ def test_the_loss_is_the_mse_of_real_frames_plus_the_weighted_counter_error():
     losses(model, batch, 0.0, noise_std=torch.ones(3))
     assert torch.equal(model.fed[..., -1], batch.frames_in[..., -1])  # the counter is never perturbed
     assert not torch.equal(model.fed[..., :-1], batch.frames_in[..., :-1])
+
+
+def test_a_split_without_clips_scores_an_infinite_selection_figure():
+    """No clip to score (a dev split emptied by the length filters): the selection figure is +inf, so such a
+    checkpoint is never kept as the best, and no other figure is invented."""
+    from m3t.body.skeleton import body_graph
+    from m3t.sgsa.evaluate import MEAN_DTW, SELECTION_METRIC, score_production
+
+    report = score_production([], {}, body_graph(), 100)
+    assert report.summary[MEAN_DTW] == report.summary[SELECTION_METRIC] == float("inf")
+    assert "length_penalty" not in report.summary and report.per_clip == []
