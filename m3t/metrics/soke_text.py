@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from m3t.metrics.text import (
+    _check,
     bleu_statistics,
     is_chinese,
     lcs_length,
@@ -92,10 +93,7 @@ class SokeScores:
 def soke_scores(hyps: Sequence[str], refs: Sequence[str], level: str = "word") -> SokeScores:
     """BLEU-1..4 and ROUGE-L of hypotheses against one reference each, as SOKE computes them at ``level``."""
     _check_level(level)
-    if len(hyps) != len(refs):
-        raise ValueError(f"{len(hyps)} hypotheses and {len(refs)} references; give one reference per hypothesis")
-    if not hyps:
-        raise ValueError("no sentence to score")
+    _check(hyps, refs)
     bleu = slt_bleu_from_statistics(bleu_statistics([soke_bleu_tokens(h, level) for h in hyps],
                                                     [soke_bleu_tokens(r, level) for r in refs]))
     rouge = [soke_rouge_l_sentence(soke_rouge_tokens(h, level), soke_rouge_tokens(r, level))

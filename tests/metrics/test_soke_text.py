@@ -75,10 +75,13 @@ def test_chinese_is_scored_per_character_and_a_space_counts_in_rouge_only():
 
 
 def test_bad_input_is_named():
-    with pytest.raises(ValueError, match=r"^2 hypotheses and 1 references; give one reference per hypothesis$"):
+    with pytest.raises(ValueError, match=r"^2 hypotheses but 1 references; give one reference per hypothesis$"):
         soke_scores(["a", "b"], ["a"])
-    with pytest.raises(ValueError, match=r"^no sentence to score$"):
+    with pytest.raises(ValueError, match=r"^no hypotheses to score; give at least one \(hypothesis, reference\) "
+                                         r"pair$"):
         soke_scores([], [])
+    with pytest.raises(TypeError, match=r"^pair 0: hypothesis and reference must be strings, got NoneType, str$"):
+        soke_scores([None], ["a"])
     with pytest.raises(ValueError, match=r"unknown SOKE scoring level 'jieba'"):
         soke_scores(["a"], ["a"], "jieba")
     with pytest.raises(ValueError, match="at least one token on each side"):
