@@ -407,6 +407,7 @@ def test_the_quality_page_shows_each_corpus_report_its_quarantine_and_per_clip_f
 
 
 def test_the_curves_page_draws_one_figure_per_metric_of_each_training_runs_history(tmp_path):
+    from dashboards.sections.common import run_name
     from dashboards.sections.curves import curves
     from m3t.experiment import ExperimentConfig, fetch_runs, start_run
 
@@ -423,7 +424,7 @@ def test_the_curves_page_draws_one_figure_per_metric_of_each_training_runs_histo
     runs = fetch_runs(experiment, tmp_path)
     page = curves(runs, experiment, tmp_path)
     slr = next(r for r in runs if r.stage == "train-slr")
-    assert re.findall(r"<h2>([^<]+)</h2>", page) == [run_name_of(slr)]
+    assert re.findall(r"<h2>([^<]+)</h2>", page) == [run_name(slr)]
     ids = re.findall(r'id="(curve-[^"]+)"', page)
     assert ids == [f"curve-{slr.run_id[:8]}-0", f"curve-{slr.run_id[:8]}-1"]  # train_loss, val_top1: no epoch
     assert page.count('"name":"full"') == 2 and page.count('"name":"no_face"') == 1
@@ -440,7 +441,3 @@ def test_the_newest_finished_run_of_each_variant_is_shown():
             _record("x", "train-slr", 4, variant="a")]
     assert [r.run_id for r in newest_per_variant(runs, "train-smlm")] == ["b", "a2"]
     assert [r.run_id for r in newest_per_variant(runs, "train-smlm", limit=1)] == ["b"]
-
-
-def run_name_of(record) -> str:
-    return record.tags.get("mlflow.runName", record.stage)
