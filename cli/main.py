@@ -22,6 +22,9 @@
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
+    m3t score PRED REF [--definitions ...] [--language en] [--out DIR] [--format table|csv|json] [--any-fps]
+                                          score anyone's output (.pose folders or sentence files) under the field's
+                                          definitions; clips that cannot be scored are listed with their reason
 
 This module parses the command line and holds the workspace and service commands; the experiment commands (sweeps,
 tables, claims, studies) are in :mod:`cli.experiments`; every sweep and study runs its variants as DVC experiments
@@ -176,6 +179,33 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_score(args: argparse.Namespace) -> int:
+    from tqdm.auto import tqdm
+
+    from m3t.scoring.poses import ScoreInputError
+    from m3t.scoring.score import score
+
+    definitions = [d for part in args.definitions for d in part.split(",") if d] if args.definitions else None
+    try:
+        report = score(args.prediction, args.reference, definitions, args.language, any_fps=args.any_fps,
+                       progress=lambda ids: tqdm(ids, desc="scoring", unit="clip", disable=None))
+    except ScoreInputError as exc:
+        print(f"m3t score: {exc}", file=sys.stderr)
+        return 2
+    if args.format == "json":
+        from m3t.atomic import dumps
+
+        print(dumps(report.as_json()), end="")
+    elif args.format == "csv":
+        print(report.csv(), end="")
+    else:
+        print(report.table())
+    if args.out:
+        for path in report.write(args.out):
+            print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     disable_telemetry()
     parser = argparse.ArgumentParser(prog="m3t", description=__doc__.splitlines()[0])
@@ -256,6 +286,18 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
     p.set_defaults(func=experiments.cmd_sgsa_table)
+    p = sub.add_parser("score", help="score predictions against references (.pose folders or sentence files) under "
+                                     "the field's named definitions (docs/scoring.md)")
+    p.add_argument("prediction", help="folder of .pose files, or a .txt / .tsv file of sentences")
+    p.add_argument("reference", help="the references, same kind; clips pair by relative path / line / id")
+    p.add_argument("--definitions", nargs="+", default=None, metavar="NAME",
+                   help="pose: pose_eval slrtp; text: slt soke slrtp (default: every one that applies)")
+    p.add_argument("--language", default="en", help="language of sentence files (zh: Chinese tokenisation)")
+    p.add_argument("--out", default=None, help="also write score.json, score.csv, clips.csv, unscored.csv here")
+    p.add_argument("--format", choices=("table", "csv", "json"), default="table", help="what to print")
+    p.add_argument("--any-fps", action="store_true", help="score pairs whose two sides differ in frame rate, as "
+                                                          "pose-evaluation and the SLRTP scripts do")
+    p.set_defaults(func=_cmd_score)
     args = parser.parse_args(argv)
     return args.func(args)
 
