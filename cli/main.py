@@ -23,8 +23,8 @@
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
     m3t score PRED REF [--definitions ...] [--language en] [--out DIR] [--format table|csv|json] [--any-fps]
-                                          score anyone's output (.pose folders or sentence files) under the field's
-                                          definitions; clips that cannot be scored are listed with their reason
+                                          score anyone's output (.pose folders, shards, sentence files) under the
+                                          field's definitions; clips that cannot be scored are listed with a reason
 
 This module parses the command line and holds the workspace and service commands; the experiment commands (sweeps,
 tables, claims, studies) are in :mod:`cli.experiments`; every sweep and study runs its variants as DVC experiments
@@ -179,6 +179,13 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _workspace_body(params_path: str):
+    from m3t.body.factory import load_body_model
+    from m3t.config import load_params
+
+    return load_body_model(load_params(params_path).body)
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -188,7 +195,8 @@ def _cmd_score(args: argparse.Namespace) -> int:
     definitions = [d for part in args.definitions for d in part.split(",") if d] if args.definitions else None
     try:
         report = score(args.prediction, args.reference, definitions, args.language, any_fps=args.any_fps,
-                       progress=lambda ids: tqdm(ids, desc="scoring", unit="clip", disable=None))
+                       progress=lambda ids: tqdm(ids, desc="scoring", unit="clip", disable=None),
+                       body=lambda: _workspace_body(args.params))
     except ScoreInputError as exc:
         print(f"m3t score: {exc}", file=sys.stderr)
         return 2
@@ -288,10 +296,12 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=experiments.cmd_sgsa_table)
     p = sub.add_parser("score", help="score predictions against references (.pose folders or sentence files) under "
                                      "the field's named definitions (docs/scoring.md)")
-    p.add_argument("prediction", help="folder of .pose files, or a .txt / .tsv file of sentences")
+    p.add_argument("prediction", help="folder of .pose files, a parameter shard (.parquet; the body model of "
+                                      "params.yaml), or a .txt / .tsv file of sentences")
     p.add_argument("reference", help="the references, same kind; clips pair by relative path / line / id")
     p.add_argument("--definitions", nargs="+", default=None, metavar="NAME",
-                   help="pose: pose_eval slrtp; text: slt soke slrtp (default: every one that applies)")
+                   help="pose: pose_eval slrtp; parameters: m3t soke_exact; text: slt soke slrtp (default: every "
+                        "one that applies)")
     p.add_argument("--language", default="en", help="language of sentence files (zh: Chinese tokenisation)")
     p.add_argument("--out", default=None, help="also write score.json, score.csv, clips.csv, unscored.csv here")
     p.add_argument("--format", choices=("table", "csv", "json"), default="table", help="what to print")

@@ -9,6 +9,8 @@ Inputs (:func:`score`):
   ``pose_eval`` (every variant of :data:`m3t.metrics.pose_eval.VARIANTS`, the mean distance over clips) and
   ``slrtp`` (DTW-MJE, wrist path ratio, duration ratio over the 178 keypoints, pooled as the challenge pools;
   its 25 fps rule applies to each side's own rate);
+- **parameter shards**: two Parquet shards of this project (:mod:`m3t.scoring.params`): definitions ``m3t`` and
+  ``soke_exact`` on the workspace's body model;
 - **text files**: two ``.txt`` files, one sentence per line, paired by line; or two ``.tsv`` files with a header
   holding ``id`` and ``text`` columns, paired by id. Definitions ``slt``, ``soke``, ``slrtp``
   (:func:`m3t.metrics.definitions.text_metrics`) in the ``language`` given.
@@ -24,15 +26,14 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import warnings
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from m3t.atomic import write_json, write_text
+from m3t.body.protocol import BodyModel
 from m3t.metrics.definitions import TEXT_DEFINITIONS, text_metrics
 from m3t.metrics.pose_eval import (
     FACE_MESH,
@@ -46,90 +47,12 @@ from m3t.metrics.slrtp import (
     slrtp_metrics_from_statistics,
     slrtp_pair_statistics,
 )
+from m3t.scoring.params import score_parameter_shards
 from m3t.scoring.poses import PoseClip, ScoreInputError, read_pose_clip, slrtp_array
+from m3t.scoring.report import ScoreReport, check_definitions, pairing
 
 POSE_DEFINITIONS = ("pose_eval", "slrtp")
 TEXT_SUFFIXES = (".txt", ".tsv")
-
-
-@dataclass
-class ScoreReport:
-    """What :func:`score` measured: one value per metric (keys carry their definition's name), how many clips
-    each definition averaged, every clip's own values, and the clips left out with their reason."""
-
-    kind: str  # "pose" or "text"
-    prediction: str
-    reference: str
-    metrics: dict[str, float] = field(default_factory=dict)
-    definition_of: dict[str, str] = field(default_factory=dict)  # metric -> definition
-    clips_scored: dict[str, int] = field(default_factory=dict)  # definition -> clips in its values
-    per_clip: list[dict] = field(default_factory=list)  # {"clip", "definition", "metric", "value"}
-    unscored: list[dict] = field(default_factory=list)  # {"clip", "definition", "reason"}
-    paired: int = 0  # clips present on both sides
-    notes: list[str] = field(default_factory=list)
-
-    def rows(self) -> list[tuple[str, str, float, int]]:
-        """(definition, metric, value, clips) in the order measured."""
-        return [(self.definition_of[k], k, v, self.clips_scored[self.definition_of[k]]) for k, v in self.metrics.items()]
-
-    def table(self) -> str:
-        """The terminal table: one line per metric, then the unscored clips."""
-        lines = [f"m3t score ({self.kind}): {self.prediction} against {self.reference}; {self.paired} clips paired",
-                 f"{'definition':<11} {'metric':<28} {'value':>12} {'clips':>6}"]
-        lines += [f"{d:<11} {m:<28} {_number(v):>12} {n:>6}" for d, m, v, n in self.rows()]
-        if self.unscored:
-            lines.append(f"not scored ({len(self.unscored)}):")
-            lines += [f"  {u['clip']} [{u['definition']}]: {u['reason']}" for u in self.unscored]
-        lines += self.notes
-        return "\n".join(lines)
-
-    def csv(self) -> str:
-        """The table as CSV: definition, metric, value, clips."""
-        return _csv(("definition", "metric", "value", "clips"), self.rows())
-
-    def as_json(self) -> dict:
-        return {"kind": self.kind, "prediction": self.prediction, "reference": self.reference,
-                "paired": self.paired, "clips_scored": self.clips_scored,
-                "metrics": {k: _finite_or_none(v) for k, v in self.metrics.items()},
-                "definition_of": self.definition_of, "unscored": self.unscored, "notes": self.notes,
-                "per_clip": [dict(r, value=_finite_or_none(r["value"])) for r in self.per_clip]}
-
-    def write(self, out: str | Path) -> list[Path]:
-        """``score.json`` (everything), ``score.csv`` (the table), ``clips.csv`` (per clip) and ``unscored.csv``
-        into folder ``out``, each written whole or not at all."""
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"score.json": None,
-                 "score.csv": self.csv(),
-                 "clips.csv": _csv(("clip", "definition", "metric", "value"),
-                                   [(r["clip"], r["definition"], r["metric"], r["value"]) for r in self.per_clip]),
-                 "unscored.csv": _csv(("clip", "definition", "reason"),
-                                      [(u["clip"], u["definition"], u["reason"]) for u in self.unscored])}
-        written = []
-        for name, text in files.items():
-            path = out / name
-            if text is None:
-                write_json(path, self.as_json())
-            else:
-                write_text(path, text)
-            written.append(path)
-        return written
-
-
-def _number(v: float) -> str:
-    return f"{v:.4f}" if math.isfinite(v) else str(v)
-
-
-def _finite_or_none(v: float) -> float | None:
-    return v if math.isfinite(v) else None
-
-
-def _csv(header: Sequence[str], rows: Iterable[Sequence]) -> str:
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
-    writer.writerows(rows)
-    return buffer.getvalue()
 
 
 # ---- inputs ---------------------------------------------------------------------------------------------------
@@ -157,65 +80,40 @@ def read_sentences(path: Path) -> dict[str, str]:
     return out
 
 
-def _check_definitions(definitions: Sequence[str] | None, known: Sequence[str], kind: str) -> list[str]:
-    chosen = list(known if definitions is None else definitions)
-    unknown = [d for d in chosen if d not in known]
-    if unknown or not chosen:
-        raise ScoreInputError(f"definitions {unknown or chosen} do not apply to {kind} inputs; choose from "
-                              f"{', '.join(known)}")
-    return chosen
-
-
-def _pairing(pred: dict, ref: dict, report: ScoreReport, what: str) -> list[str]:
-    """Clip ids on both sides; the others listed as unscored. Error when none pairs."""
-    both = [k for k in ref if k in pred]
-    for k in ref:
-        if k not in pred:
-            report.unscored.append({"clip": k, "definition": "all", "reason": f"no prediction (no {what} {k!r} "
-                                    f"under {report.prediction})"})
-    for k in pred:
-        if k not in ref:
-            report.unscored.append({"clip": k, "definition": "all", "reason": f"no reference (no {what} {k!r} "
-                                    f"under {report.reference})"})
-    if not both:
-        raise ScoreInputError(f"no clip id is on both sides: {len(pred)} predictions ({_examples(pred)}) and "
-                              f"{len(ref)} references ({_examples(ref)}); name each prediction as its reference")
-    report.paired = len(both)
-    return both
-
-
-def _examples(ids: Iterable[str]) -> str:
-    ids = list(ids)
-    return ", ".join(repr(i) for i in ids[:3]) + (", ..." if len(ids) > 3 else "") if ids else "none"
-
-
 # ---- scoring --------------------------------------------------------------------------------------------------
 def score(prediction: str | Path, reference: str | Path, definitions: Sequence[str] | None = None,
           language: str = "en", progress: Callable[[Iterable], Iterable] | None = None,
-          any_fps: bool = False) -> ScoreReport:
+          any_fps: bool = False, body: BodyModel | Callable[[], BodyModel] | None = None) -> ScoreReport:
     """Score ``prediction`` against ``reference`` (two folders of ``.pose`` files, or two sentence files; see
     the module doc) under ``definitions`` (default: every one that applies to the inputs); ``any_fps``: see
-    :func:`score_pose_folders`."""
+    :func:`score_pose_folders`; ``body``: the body model of parameter shards, or a function that loads it (called
+    only for shards)."""
     pred, ref = Path(prediction), Path(reference)
     for path in (pred, ref):
         if not path.exists():
             raise ScoreInputError(f"{path} does not exist")
+    if pred.suffix == ref.suffix == ".parquet" and pred.is_file() and ref.is_file():
+        if body is None:
+            raise ScoreInputError(f"{pred} and {ref} are parameter shards: scoring them needs the body model they "
+                                  "were fitted with (body.model in params.yaml)")
+        model = body if hasattr(body, "layout") else body()  # a body model (itself callable), or its loader
+        return score_parameter_shards(pred, ref, model, definitions, progress)
     if pred.is_dir() and ref.is_dir():
         return score_pose_folders(pred, ref, definitions, progress, any_fps)
     if pred.suffix in TEXT_SUFFIXES and ref.suffix in TEXT_SUFFIXES and pred.is_file() and ref.is_file():
         return score_sentences(pred, ref, language, definitions)
-    raise ScoreInputError(f"cannot score {pred} against {ref}: give two folders of .pose files, or two sentence "
-                          f"files ({' / '.join(TEXT_SUFFIXES)})")
+    raise ScoreInputError(f"cannot score {pred} against {ref}: give two folders of .pose files, two parameter "
+                          f"shards (.parquet) or two sentence files ({' / '.join(TEXT_SUFFIXES)})")
 
 
 def score_sentences(pred: Path, ref: Path, language: str, definitions: Sequence[str] | None = None) -> ScoreReport:
     """Text definitions over two sentence files (one reference per hypothesis)."""
-    chosen = _check_definitions(definitions, tuple(TEXT_DEFINITIONS), "text")
+    chosen = check_definitions(definitions, tuple(TEXT_DEFINITIONS), "text")
     if pred.suffix != ref.suffix:
         raise ScoreInputError(f"{pred} and {ref} differ in format; give two .txt or two .tsv files")
     report = ScoreReport("text", str(pred), str(ref))
     hyps, refs = read_sentences(pred), read_sentences(ref)
-    ids = _pairing(hyps, refs, report, "line" if pred.suffix == ".txt" else "id")
+    ids = pairing(hyps, refs, report, "line" if pred.suffix == ".txt" else "id")
     for name in chosen:
         values = text_metrics([hyps[i] for i in ids], [refs[i] for i in ids], language, [name])
         report.metrics.update(values)
@@ -270,10 +168,10 @@ def score_pose_folders(pred: Path, ref: Path, definitions: Sequence[str] | None 
     """Motion definitions over two folders of holistic ``.pose`` files. A pair at two frame rates is refused
     unless ``any_fps``: pose-evaluation's DTW ignores rates and the SLRTP rule halves each 25 fps side, so the
     peers score such pairs as they come."""
-    chosen = _check_definitions(definitions, POSE_DEFINITIONS, "pose")
+    chosen = check_definitions(definitions, POSE_DEFINITIONS, "pose")
     report = ScoreReport("pose", str(pred), str(ref))
     pred_files, ref_files = pose_files(pred), pose_files(ref)
-    ids = _pairing(pred_files, ref_files, report, ".pose file")
+    ids = pairing(pred_files, ref_files, report, ".pose file")
     pose_eval: dict[str, list[float]] = {name: [] for name in VARIANTS}
     slrtp: list[SLRTPPairStatistics] = []
     defaulted = irises_dropped = 0

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -257,8 +258,8 @@ def test_sentence_file_errors(tmp_path):
     (tmp_path / "h.txt").write_text("a\n")
     with pytest.raises(ScoreInputError, match=r"differ in format; give two \.txt or two \.tsv files"):
         score(tmp_path / "h.txt", tmp_path / "r.tsv")
-    with pytest.raises(ScoreInputError, match=r"cannot score .* give two folders of \.pose files, or two sentence "
-                                              r"files \(\.txt / \.tsv\)"):
+    with pytest.raises(ScoreInputError, match=r"cannot score .* give two folders of \.pose files, two parameter "
+                                              r"shards \(\.parquet\) or two sentence files \(\.txt / \.tsv\)"):
         score(tmp_path / "h.txt", tmp_path)
     with pytest.raises(ScoreInputError, match=r"nowhere\.txt does not exist"):
         score(tmp_path / "nowhere.txt", tmp_path / "h.txt")
@@ -303,3 +304,68 @@ def test_holistic_array_needs_point_names():
     data = PoseData(np.zeros((1, 2, 3), np.float32), np.ones((1, 2), np.float32), 25.0, (("X", 2),), 1, 1)
     with pytest.raises(ScoreInputError, match=r"x\.pose: the \.pose data carry no point names"):
         holistic_array(data, "x.pose")
+
+
+# ---- parameter shards -------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def parameter_shards(body, tmp_path_factory):
+    """A reference shard of three smooth clips (c0 18 frames, c1 25, c2 32; :func:`tiny_pipeline.write_shards`, the
+    shard layout every fitting stage writes) and a prediction shard holding other motion for c0 and c1 (c1 cut
+    to 10 frames) plus a clip c9 the references lack."""
+    from builders import smooth_motion
+    from tiny_pipeline import write_shards
+
+    from m3t.shards.io import read_shard, write_shard
+
+    root = tmp_path_factory.mktemp("parameter_shards")
+    write_shards(root / "ref", body, {"test": 3})
+    ref = read_shard(root / "ref" / "test.parquet")
+    predicted = []
+    for clip, frames, seed in ((ref.clips[0], 18, 40), (ref.clips[1], 10, 41)):
+        params = {k: v.numpy() for k, v in smooth_motion(body, frames=frames, seed=seed).items()}
+        predicted.append(replace(clip, params=params))
+    extra = replace(ref.clips[0], clip=replace(ref.clips[0].clip, id="c9"))
+    write_shard(root / "pred.parquet", [*predicted, extra], body.layout)
+    return root / "pred.parquet", root / "ref" / "test.parquet", ref, predicted
+
+
+def test_parameter_shards_scored_as_the_smlm_evaluation_scores(body, parameter_shards):
+    from m3t.metrics.scorer import MotionPair, MotionScorer
+
+    pred, ref, reference, predicted = parameter_shards
+    report = score(pred, ref, body=lambda: body)
+    expected = MotionScorer(body).score([MotionPair(p.clip.id, "synthetic/ASL-SYN", p.params, r.identity, r.params)
+                                         for p, r in zip(predicted, reference.clips)])
+    assert report.kind == "parameters" and report.clips_scored == {"m3t": 2}  # Anny: no soke_exact by default
+    for key, value in expected.overall.items():
+        assert report.metrics[f"m3t_{key}"] == pytest.approx(value, rel=1e-9)
+    assert report.metrics["m3t_dtw_jpe_body_m"] > 0 and report.metrics["m3t_empty_rate"] == 0.0
+    assert {(u["clip"], u["reason"].split(" (")[0]) for u in report.unscored} == {("c2", "no prediction"),
+                                                                                  ("c9", "no reference")}
+    same = score(ref, ref, ["m3t"], body=body)
+    assert same.metrics["m3t_dtw_jpe_body_m"] == pytest.approx(0.0, abs=1e-9)  # a clip against itself
+
+
+def test_parameter_shard_refusals(body, parameter_shards, tmp_path):
+    pred, ref, _, _ = parameter_shards
+    with pytest.raises(ScoreInputError, match=r"are parameter shards: scoring them needs the body model they were "
+                                              r"fitted with \(body\.model in params\.yaml\)"):
+        score(pred, ref)
+    with pytest.raises(ScoreInputError, match=r"motion metric mode 'soke_exact' reproduces SOKE's SMPL-X "
+                                              r"evaluation and needs body\.model: smplfx"):
+        score(pred, ref, ["soke_exact"], body=body)
+    with pytest.raises(ScoreInputError, match=r"definitions \['slrtp'\] do not apply to parameter inputs; choose "
+                                              r"from m3t, soke_exact"):
+        score(pred, ref, ["slrtp"], body=body)
+    (tmp_path / "bad.parquet").write_bytes(b"PAR1 not really")
+    with pytest.raises(ScoreInputError, match=r"^prediction shard .*bad\.parquet"):
+        score(tmp_path / "bad.parquet", ref, body=body)
+
+
+def test_the_command_loads_the_workspace_body_for_shards(parameter_shards, capsys):
+    from tiny_pipeline import ROOT
+
+    pred, ref, _, _ = parameter_shards
+    assert cli_main(["--params", str(ROOT / "params.yaml"), "score", str(pred), str(ref), "--format", "csv"]) == 0
+    rows = dict(line.split(",")[1:3] for line in capsys.readouterr().out.splitlines()[1:])
+    assert float(rows["m3t_dtw_jpe_body_m"]) > 0 and rows["m3t_empty_rate"] == "0.0"
