@@ -186,6 +186,22 @@ def _workspace_body(params_path: str):
     return load_body_model(load_params(params_path).body)
 
 
+def _workspace_judge(args: argparse.Namespace) -> dict:
+    """For shards: the workspace's tokenizers (a token shard is decoded by them) and the back-translation judge
+    (``--judge``, else the workspace's when it has checkpoints) with the decoding settings of params.yaml."""
+    from m3t.config import load_params
+
+    if not str(args.prediction).endswith(".parquet"):
+        return {}
+    params = load_params(args.params)
+    found = {"tokenizers_dir": params.data.tokenizers_dir}
+    judge = Path(args.judge) if args.judge else params.data.backtranslation_dir
+    if args.judge or any(judge.glob("*.pt")):
+        found.update(judge=judge, beam_size=params.backtranslation.beam_size,
+                     length_penalty=params.backtranslation.length_penalty)
+    return found
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -196,7 +212,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
     try:
         report = score(args.prediction, args.reference, definitions, args.language, any_fps=args.any_fps,
                        progress=lambda ids: tqdm(ids, desc="scoring", unit="clip", disable=None),
-                       body=lambda: _workspace_body(args.params))
+                       body=lambda: _workspace_body(args.params), **_workspace_judge(args))
     except ScoreInputError as exc:
         print(f"m3t score: {exc}", file=sys.stderr)
         return 2
@@ -303,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="pose: pose_eval slrtp; parameters: m3t soke_exact; text: slt soke slrtp (default: every "
                         "one that applies)")
     p.add_argument("--language", default="en", help="language of sentence files (zh: Chinese tokenisation)")
+    p.add_argument("--judge", default=None, help="back-translation checkpoints for shards (default: the workspace's "
+                                                 "models/backtranslation when trained)")
     p.add_argument("--out", default=None, help="also write score.json, score.csv, clips.csv, unscored.csv here")
     p.add_argument("--format", choices=("table", "csv", "json"), default="table", help="what to print")
     p.add_argument("--any-fps", action="store_true", help="score pairs whose two sides differ in frame rate, as "

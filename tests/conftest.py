@@ -100,6 +100,7 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_arithmetic": ("slow", "e2e"),
     "test_study": ("slow", "e2e"),
     "test_dashboard": ("slow", "e2e"),
+    "test_score_pipeline": ("slow", "e2e"),  # scores the tiny pipeline's outputs
     "test_synthetic": ("slow",),       # generates whole corpora
     "test_synthetic_design": ("slow",),  # generates the study corpus
     "test_fit_batches": ("slow",),     # fits signer batches to convergence

@@ -1,5 +1,6 @@
 """Body-model parameters scored as the SMLM's evaluation scores them: two Parquet shards of this project
-(:mod:`m3t.shards`, e.g. a fitted test split and a system's output written as a shard) -> definitions ``m3t``
+(:mod:`m3t.shards`, e.g. a fitted test split and a system's output written as a shard; a token shard such as
+generate-smlm's ``generated.parquet`` is decoded by the tokenizers that wrote it) -> definitions ``m3t``
 (DTW-JPE / DTW-PA-JPE per region and the face's DTW-VPE on the workspace's body model, this project's tables)
 and ``soke_exact`` (SOKE's pelvis-rooted body and zeroed joints; SMPL-FX only), through the one scorer
 :class:`m3t.metrics.scorer.MotionScorer`.
@@ -8,68 +9,136 @@ Both sides of a pair are posed with the **reference's** identity (the scorer's r
 alone). Keys carry the definition: ``m3t_dtw_jpe_body_m`` is the pipeline's ``dtw_jpe_body_m`` under mode
 ``m3t``. A clip is refused with its reason when its two sides differ in body model, when the shards' layouts
 differ from the body model's, or when it has no frames on the reference side.
+
+With a judge (the back-translation checkpoints), every sentence clip's prediction is back-translated and scored
+against the reference's text under the text definitions (``slt``, ``soke``, ``slrtp``), keys
+``<definition>/<language>/<metric>`` as evaluate-smlm writes them under ``bt/``; isolated signs and clips
+without text are left out with that reason, as the pipeline leaves them out.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from m3t.body.protocol import BodyModel
+from m3t.corpora.clip import Clip
+from m3t.metrics.definitions import TEXT_DEFINITIONS, text_metrics
 from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.scorer import MotionPair, MotionScorer
 from m3t.metrics.soke import SokeModeError
 from m3t.scoring.poses import ScoreInputError
 from m3t.scoring.report import ScoreReport, check_definitions, pairing
-from m3t.shards.io import read_shard
+from m3t.shards.io import parquet_file, read_shard
 from m3t.shards.schema import ShardFormatError
+from m3t.shards.tokens import read_token_shard
 
-PARAMETER_DEFINITIONS = ("m3t", "soke_exact")
+TOKEN_VERSION_KEY = b"m3t.token_schema_version"
+
+MOTION_DEFINITIONS = ("m3t", "soke_exact")
+PARAMETER_DEFINITIONS = (*MOTION_DEFINITIONS, *TEXT_DEFINITIONS)  # text: the judge's back-translations
 
 
-def _read(path: Path, side: str):
+@dataclass(frozen=True)
+class Side:
+    """One side's clips: clip id -> (corpus record, {modality: (T, D) parameters}, body model name)."""
+
+    path: Path
+    modalities: dict[str, int]
+    clips: dict[str, tuple[Clip, dict[str, np.ndarray], str]]
+    identities: dict[str, np.ndarray]
+
+
+def is_token_shard(path: Path) -> bool:
+    """Whether ``path`` is a token shard (what tokenize and generate-smlm write), by its Parquet metadata."""
     try:
-        return read_shard(path)
+        return TOKEN_VERSION_KEY in (parquet_file(path).schema_arrow.metadata or {})
+    except (ShardFormatError, OSError):
+        return False
+
+
+def read_side(path: Path, side: str, body: BodyModel, tokenizers_dir: Path | None = None) -> Side:
+    """A parameter shard as it is, or a token shard decoded by the tokenizers of ``tokenizers_dir`` (an empty
+    generation, no token, is a 0-frame prediction: scored as the rest pose, as evaluate-smlm scores it)."""
+    if is_token_shard(path):
+        return _decoded(path, side, body, tokenizers_dir)
+    try:
+        shard = read_shard(path)
     except (ShardFormatError, OSError) as exc:
         raise ScoreInputError(f"{side} shard {exc}") from exc
+    return Side(path, dict(shard.layout.dims), {c.clip.id: (c.clip, c.params, c.body_model) for c in shard.clips},
+                {c.clip.id: c.identity for c in shard.clips})
 
 
-def _check_layout(shard, body: BodyModel, side: str) -> None:
-    if dict(shard.layout.dims) != dict(body.layout.dims):
-        raise ScoreInputError(f"{shard.path}: {side} parameters have modalities {dict(shard.layout.dims)}, the "
-                              f"workspace's body model {body.name!r} has {dict(body.layout.dims)}; set body.model in "
-                              "params.yaml to the model the shard was fitted with")
+def _decoded(path: Path, side: str, body: BodyModel, tokenizers_dir: Path | None) -> Side:
+    from m3t.tokenizers.evaluate import decode_streams
+    from m3t.tokenizers.tokenize import load_tokenizers
+
+    if tokenizers_dir is None or not Path(tokenizers_dir).is_dir():
+        raise ScoreInputError(f"{path}: a token shard; decoding its {side} needs the tokenizers that wrote it "
+                              f"(models/tokenizers; not found: {tokenizers_dir})")
+    try:
+        shard = read_token_shard(path)
+    except ShardFormatError as exc:
+        raise ScoreInputError(f"{side} token shard {exc}") from exc
+    tokenizers, info = load_tokenizers(tokenizers_dir)
+    if shard.info.tokenizers != info.tokenizers:
+        raise ScoreInputError(f"{path}: written with tokenizers {shard.info.tokenizers}, {tokenizers_dir} holds "
+                              f"{info.tokenizers}; decode with the tokenizers that wrote it")
+    empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
+    clips = {c.clip.id: (c.clip, decode_streams(tokenizers, c.tokens) if c.num_tokens else dict(empty), body.name)
+             for c in shard.clips}
+    return Side(path, dict(body.layout.dims), clips, {})
+
+
+def _check_layout(side: Side, body: BodyModel, name: str) -> None:
+    if side.modalities != dict(body.layout.dims):
+        raise ScoreInputError(f"{side.path}: {name} parameters have modalities {side.modalities}, the workspace's "
+                              f"body model {body.name!r} has {dict(body.layout.dims)}; set body.model in params.yaml "
+                              "to the model the shard was fitted with")
 
 
 def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: Sequence[str] | None = None,
-                           progress: Callable[[Iterable], Iterable] | None = None) -> ScoreReport:
-    """Score the clips of shard ``pred`` against those of shard ``ref`` on ``body`` (see the module doc)."""
-    if definitions is None:  # every definition that applies: soke_exact needs SMPL-FX
-        definitions = [d for d in PARAMETER_DEFINITIONS if d != "soke_exact" or body.name == "smplfx"]
+                           progress: Callable[[Iterable], Iterable] | None = None,
+                           judge: Path | None = None, beam_size: int = 1, length_penalty: float = 1.0,
+                           tokenizers_dir: Path | None = None) -> ScoreReport:
+    """Score the clips of shard ``pred`` against those of shard ``ref`` on ``body`` (see the module doc); a token
+    shard on either side is decoded by the tokenizers of ``tokenizers_dir``. With a
+    ``judge`` folder (back-translation checkpoints, ``models/backtranslation``), the predictions are also
+    back-translated (``beam_size``, ``length_penalty``: the decoding of params.yaml ``backtranslation``) and the
+    sentences scored against the reference shard's texts under the text definitions."""
+    if definitions is None:  # every definition that applies: soke_exact needs SMPL-FX, text ones a judge
+        definitions = [d for d in PARAMETER_DEFINITIONS if (d != "soke_exact" or body.name == "smplfx")
+                       and (d in MOTION_DEFINITIONS or judge is not None)]
     chosen = check_definitions(definitions, PARAMETER_DEFINITIONS, "parameter")
     report = ScoreReport("parameters", str(pred), str(ref))
-    predicted, references = _read(pred, "prediction"), _read(ref, "reference")
-    for shard, side in ((predicted, "prediction"), (references, "reference")):
-        _check_layout(shard, body, side)
-    p_clips = {c.clip.id: c for c in predicted.clips}
-    r_clips = {c.clip.id: c for c in references.clips}
-    ids = pairing(p_clips, r_clips, report, "clip")
+    predicted = read_side(pred, "prediction", body, tokenizers_dir)
+    references = read_side(ref, "reference", body, tokenizers_dir)
+    if not references.identities:
+        raise ScoreInputError(f"{ref}: the reference must be a parameter shard (fitted motion with the signer's "
+                              "identity), not a token shard")
+    for side, name in ((predicted, "prediction"), (references, "reference")):
+        _check_layout(side, body, name)
+    ids = pairing(predicted.clips, references.clips, report, "clip")
     pairs = []
     for clip in (progress or (lambda x: x))(ids):
-        p, r = p_clips[clip], r_clips[clip]
-        if p.body_model != r.body_model or r.body_model != body.name:
+        (_, p_params, p_body), (r_clip, r_params, r_body) = predicted.clips[clip], references.clips[clip]
+        if p_body != r_body or r_body != body.name:
             report.unscored.append({"clip": clip, "definition": "all", "reason": (
-                f"prediction fitted with {p.body_model!r}, reference with {r.body_model!r}, workspace body "
-                f"model {body.name!r}; both sides must be parameters of the workspace's body model")})
+                f"prediction fitted with {p_body!r}, reference with {r_body!r}, workspace body model "
+                f"{body.name!r}; both sides must be parameters of the workspace's body model")})
             continue
-        if r.num_frames == 0:
+        if not len(next(iter(r_params.values()), ())):
             report.unscored.append({"clip": clip, "definition": "all", "reason": "the reference has no frames"})
             continue
-        group = f"{r.clip.corpus}/{r.clip.language}"
-        pairs.append(MotionPair(clip, group, p.params, r.identity, r.params))
+        group = f"{r_clip.corpus}/{r_clip.language}"
+        pairs.append(MotionPair(clip, group, p_params, references.identities[clip], r_params))
     if not pairs:
         raise ScoreInputError(f"no clip could be scored ({len(report.unscored)} refused; "
                               + "; ".join(f"{u['clip']}: {u['reason']}" for u in report.unscored[:3]) + ")")
-    for name in chosen:
+    for name in (d for d in chosen if d in MOTION_DEFINITIONS):
         try:
             scorer = MotionScorer(body, MotionMetricsConfig(mode=name))
         except SokeModeError as exc:
@@ -82,5 +151,52 @@ def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: 
         for row in scores.per_clip:
             report.per_clip += [{"clip": row.clip_id, "definition": name, "metric": f"{name}_{k}", "value": v}
                                 for k, v in row.metrics.items()]
+    text = [d for d in chosen if d in TEXT_DEFINITIONS]
+    if text:
+        if judge is None:
+            raise ScoreInputError(f"definitions {text} score back-translated sentences and need a judge: the "
+                                  "folder of back-translation checkpoints (`dvc repro train-backtranslation` writes "
+                                  "models/backtranslation)")
+        _backtranslated(report, pairs, {c: v[0] for c, v in references.clips.items()}, judge, text, beam_size,
+                        length_penalty)
     report.notes.append(f"body model: {body.name}; both sides posed with the reference's identity; metres")
     return report
+
+
+def _backtranslated(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, judge: Path,
+                    definitions: Sequence[str], beam_size: int, length_penalty: float) -> None:
+    """Back-translate each pair's prediction with the judge of its clip's language; score the sentences per
+    language against the reference texts (as the judge's text rule writes them). Keys
+    ``<definition>/<language>/<metric>``, as the back-translation stages write them."""
+    from m3t.backtranslation.data import skip_reason
+    from m3t.backtranslation.pipeline import backtranslate, load_models
+
+    try:
+        languages = set(load_models(judge))
+    except FileNotFoundError as exc:
+        raise ScoreInputError(str(exc)) from exc
+    inputs, texts = {}, {}
+    for pair in pairs:
+        clip = clips[pair.clip_id]
+        if clip.language not in languages:
+            reason = f"no judge for language {clip.language!r} in {judge} (judges: {sorted(languages)})"
+        elif skip_reason(clip, 1) is not None:  # isolated signs and clips without text, as the pipeline skips
+            reason = f"not back-translated: {skip_reason(clip, 1)}"
+        else:
+            inputs[pair.clip_id], texts[pair.clip_id] = (clip.language, pair.prediction), clip.text
+            continue
+        report.unscored.append({"clip": pair.clip_id, "definition": "back-translation", "reason": reason})
+    if not inputs:
+        return
+    rows = backtranslate(judge, inputs, texts, beam_size, length_penalty).per_clip
+    for language in dict.fromkeys(r["language"] for r in rows):
+        mine = [r for r in rows if r["language"] == language]
+        for name in definitions:
+            values = text_metrics([r["hypothesis"] for r in mine], [r["reference"] for r in mine], language, [name])
+            for key, value in values.items():  # "slt_bleu4" -> "slt/<language>/bleu4", the pipeline's key
+                named = f"{name}/{language}/{key.removeprefix(name + '_')}"
+                report.metrics[named] = value
+                report.definition_of[named] = name
+            report.clips_scored[name] = report.clips_scored.get(name, 0) + len(mine)
+    report.sentences += [{"clip": r["clip_id"], "language": r["language"], "hypothesis": r["hypothesis"],
+                          "reference": r["reference"]} for r in rows]

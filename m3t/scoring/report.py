@@ -26,6 +26,8 @@ class ScoreReport:
     clips_scored: dict[str, int] = field(default_factory=dict)  # definition -> clips in its values
     per_clip: list[dict] = field(default_factory=list)  # {"clip", "definition", "metric", "value"}
     unscored: list[dict] = field(default_factory=list)  # {"clip", "definition", "reason"}
+    # back-translations: {"clip", "language", "hypothesis", "reference"}
+    sentences: list[dict] = field(default_factory=list)
     paired: int = 0  # clips present on both sides
     notes: list[str] = field(default_factory=list)
 
@@ -53,11 +55,12 @@ class ScoreReport:
                 "paired": self.paired, "clips_scored": self.clips_scored,
                 "metrics": {k: _finite_or_none(v) for k, v in self.metrics.items()},
                 "definition_of": self.definition_of, "unscored": self.unscored, "notes": self.notes,
-                "per_clip": [dict(r, value=_finite_or_none(r["value"])) for r in self.per_clip]}
+                "per_clip": [dict(r, value=_finite_or_none(r["value"])) for r in self.per_clip],
+                "sentences": self.sentences}
 
     def write(self, out: str | Path) -> list[Path]:
-        """``score.json`` (everything), ``score.csv`` (the table), ``clips.csv`` (per clip) and ``unscored.csv``
-        into folder ``out``, each written whole or not at all."""
+        """``score.json`` (everything), ``score.csv`` (the table), ``clips.csv`` (per clip), ``unscored.csv`` and,
+        with back-translations, ``sentences.csv`` into folder ``out``, each written whole or not at all."""
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         files = {"score.json": None,
@@ -66,6 +69,9 @@ class ScoreReport:
                                    [(r["clip"], r["definition"], r["metric"], r["value"]) for r in self.per_clip]),
                  "unscored.csv": _csv(("clip", "definition", "reason"),
                                       [(u["clip"], u["definition"], u["reason"]) for u in self.unscored])}
+        if self.sentences:
+            files["sentences.csv"] = _csv(("clip", "language", "hypothesis", "reference"),
+                                          [tuple(r.values()) for r in self.sentences])
         written = []
         for name, text in files.items():
             path = out / name

@@ -9,8 +9,10 @@ Inputs (:func:`score`):
   ``pose_eval`` (every variant of :data:`m3t.metrics.pose_eval.VARIANTS`, the mean distance over clips) and
   ``slrtp`` (DTW-MJE, wrist path ratio, duration ratio over the 178 keypoints, pooled as the challenge pools;
   its 25 fps rule applies to each side's own rate);
-- **parameter shards**: two Parquet shards of this project (:mod:`m3t.scoring.params`): definitions ``m3t`` and
-  ``soke_exact`` on the workspace's body model;
+- **parameter shards**: two Parquet shards of this project (:mod:`m3t.scoring.params`; the prediction may be a
+  token shard such as generate-smlm's ``generated.parquet``, decoded by the workspace's tokenizers): definitions
+  ``m3t`` and ``soke_exact`` on the workspace's body model, and the text definitions of the judge's
+  back-translations;
 - **text files**: two ``.txt`` files, one sentence per line, paired by line; or two ``.tsv`` files with a header
   holding ``id`` and ``text`` columns, paired by id. Definitions ``slt``, ``soke``, ``slrtp``
   (:func:`m3t.metrics.definitions.text_metrics`) in the ``language`` given.
@@ -83,11 +85,15 @@ def read_sentences(path: Path) -> dict[str, str]:
 # ---- scoring --------------------------------------------------------------------------------------------------
 def score(prediction: str | Path, reference: str | Path, definitions: Sequence[str] | None = None,
           language: str = "en", progress: Callable[[Iterable], Iterable] | None = None,
-          any_fps: bool = False, body: BodyModel | Callable[[], BodyModel] | None = None) -> ScoreReport:
+          any_fps: bool = False, body: BodyModel | Callable[[], BodyModel] | None = None,
+          judge: str | Path | None = None, beam_size: int = 1, length_penalty: float = 1.0,
+          tokenizers_dir: str | Path | None = None) -> ScoreReport:
     """Score ``prediction`` against ``reference`` (two folders of ``.pose`` files, or two sentence files; see
     the module doc) under ``definitions`` (default: every one that applies to the inputs); ``any_fps``: see
     :func:`score_pose_folders`; ``body``: the body model of parameter shards, or a function that loads it (called
-    only for shards)."""
+    only for shards); ``judge``, ``beam_size``, ``length_penalty``: back-translation checkpoints and their
+    decoding for the text definitions of shards; ``tokenizers_dir``: the tokenizers that decode a token shard
+    (what generate-smlm writes)."""
     pred, ref = Path(prediction), Path(reference)
     for path in (pred, ref):
         if not path.exists():
@@ -97,7 +103,8 @@ def score(prediction: str | Path, reference: str | Path, definitions: Sequence[s
             raise ScoreInputError(f"{pred} and {ref} are parameter shards: scoring them needs the body model they "
                                   "were fitted with (body.model in params.yaml)")
         model = body if hasattr(body, "layout") else body()  # a body model (itself callable), or its loader
-        return score_parameter_shards(pred, ref, model, definitions, progress)
+        return score_parameter_shards(pred, ref, model, definitions, progress, None if judge is None else Path(judge),
+                                      beam_size, length_penalty, None if tokenizers_dir is None else Path(tokenizers_dir))
     if pred.is_dir() and ref.is_dir():
         return score_pose_folders(pred, ref, definitions, progress, any_fps)
     if pred.suffix in TEXT_SUFFIXES and ref.suffix in TEXT_SUFFIXES and pred.is_file() and ref.is_file():

@@ -31,6 +31,7 @@ from m3t.scoring.poses import (
     slrtp_array,
 )
 from m3t.scoring.score import score
+from m3t.shards.io import read_shard
 
 TOL = {"rel": 1e-12, "abs": 1e-12}
 POSE, HAND = 33, 21
@@ -315,7 +316,7 @@ def parameter_shards(body, tmp_path_factory):
     from builders import smooth_motion
     from tiny_pipeline import write_shards
 
-    from m3t.shards.io import read_shard, write_shard
+    from m3t.shards.io import write_shard
 
     root = tmp_path_factory.mktemp("parameter_shards")
     write_shards(root / "ref", body, {"test": 3})
