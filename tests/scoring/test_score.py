@@ -355,8 +355,11 @@ def test_parameter_shard_refusals(body, parameter_shards, tmp_path):
     with pytest.raises(ScoreInputError, match=r"motion metric mode 'soke_exact' reproduces SOKE's SMPL-X "
                                               r"evaluation and needs body\.model: smplfx"):
         score(pred, ref, ["soke_exact"], body=body)
-    with pytest.raises(ScoreInputError, match=r"definitions \['slrtp'\] do not apply to parameter inputs; choose "
-                                              r"from m3t, soke_exact"):
+    with pytest.raises(ScoreInputError, match=r"definitions \['pose_eval'\] do not apply to parameter inputs; "
+                                              r"choose from m3t, soke_exact, slt, soke, slrtp"):
+        score(pred, ref, ["pose_eval"], body=body)
+    with pytest.raises(ScoreInputError, match=r"definitions \['slrtp'\] score back-translated sentences and need a "
+                                              r"judge: the folder of back-translation checkpoints"):
         score(pred, ref, ["slrtp"], body=body)
     (tmp_path / "bad.parquet").write_bytes(b"PAR1 not really")
     with pytest.raises(ScoreInputError, match=r"^prediction shard .*bad\.parquet"):
