@@ -22,6 +22,8 @@
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
+    m3t produce "TEXT" --language L [--system smlm|retrieval] [--out DIR]
+                                          one sentence -> .pose, parameters (.npz) and an MP4 with a trained system
     m3t score PRED REF [--definitions ...] [--language en] [--out DIR] [--format table|csv|json] [--any-fps]
                                           score anyone's output (.pose folders, shards, sentence files) under the
                                           field's definitions; clips that cannot be scored are listed with a reason
@@ -202,6 +204,27 @@ def _workspace_judge(args: argparse.Namespace) -> dict:
     return found
 
 
+def _cmd_produce(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.production.produce import ProductionError, produce
+
+    try:
+        result = produce(args.text, args.language, load_params(args.params), args.system, args.out, args.name,
+                         video=not args.no_video, progress=True)
+    except ProductionError as exc:
+        print(f"m3t produce: {exc}", file=sys.stderr)
+        return 2
+    print(f"{result.system}: {result.frames} frames at {result.fps:g} fps for {result.text!r} ({result.language})")
+    for key in ("retrieved_clip", "retrieved_text", "match", "chrf", "steps", "stopped"):
+        if key in result.details:
+            print(f"  {key}: {result.details[key]}")
+    if result.unhandled_words:
+        print(f"  words not handled ({len(result.unhandled_words)}): {' '.join(result.unhandled_words)}")
+    for path in result.files.values():
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -310,6 +333,15 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("sgsa-table", help="print SGSA Tab. 1, 2, 3 (PT, SGSA, SMLM, same judges) from MLflow")
     p.add_argument("--table", choices=("1", "2", "3", "all"), default="all")
     p.set_defaults(func=experiments.cmd_sgsa_table)
+    p = sub.add_parser("produce", help="one sentence -> signing (.pose, parameters, MP4) with a trained system")
+    p.add_argument("text", help="the sentence, in the spoken language of the corpus")
+    p.add_argument("--language", required=True, help="the sign language, as the corpus names it (e.g. ASL-SYN)")
+    p.add_argument("--system", choices=("smlm", "retrieval"), default="smlm",
+                   help="smlm: the trained SMLM; retrieval: the nearest training clip's motion (a baseline)")
+    p.add_argument("--out", default="produced", help="folder of the outputs (default: produced/)")
+    p.add_argument("--name", default=None, help="file name stem (default: a slug of the sentence)")
+    p.add_argument("--no-video", action="store_true", help="skip the MP4")
+    p.set_defaults(func=_cmd_produce)
     p = sub.add_parser("score", help="score predictions against references (.pose folders or sentence files) under "
                                      "the field's named definitions (docs/scoring.md)")
     p.add_argument("prediction", help="folder of .pose files, a parameter shard (.parquet; the body model of "
