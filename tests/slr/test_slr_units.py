@@ -193,3 +193,72 @@ def test_evaluations_come_back_from_a_runs_flat_metrics_with_every_count():
     assert overall.top5.value == 90.0 and np.isnan(overall.top5.ci_low) and overall.pair_top1 is None
     assert confusing.pair_top1.value == 70.0 and confusing.pair_clips == 6 and overall.pair_clips == 0
     assert ev.subsets_available and set(ev.scores) == {"overall", "confusing", "normal"}
+
+
+class RecordingRun:
+    """A stand-in MLflow run: records what the stage driver logs."""
+
+    def __init__(self):
+        self.params, self.metrics, self.artifacts = {}, [], []
+
+    def log_params(self, params):
+        self.params.update(params)
+
+    def log_metrics(self, metrics, step=None):
+        self.metrics.append((dict(metrics), step))
+
+    def log_artifact(self, path, folder=None):
+        self.artifacts.append(path)
+
+
+@pytest.mark.parametrize("corpus", [None, "other"], ids=["configured", "named"])
+def test_train_and_log_trains_the_named_corpus_and_logs_curves_report_and_files(monkeypatch, tmp_path, corpus):
+    """train-slr's MLflow wrapper: the corpus it is given (else ``slr.corpus``) is trained, tagged and names the
+    run; every variant's epoch records become ``<variant>/<metric>`` curves; the dev confusion pictures are logged
+    in name order after metrics.json and skipped.jsonl."""
+    import dataclasses
+    from contextlib import contextmanager
+    from types import SimpleNamespace
+
+    from m3t.body.config import BodyConfig
+    from m3t.experiment import ExperimentConfig
+    from m3t.shards.folders import DataConfig
+    from m3t.slr import pipeline
+    from m3t.slr.config import SLRConfig, SLRTrainConfig
+
+    opened, trained = [], []
+
+    @contextmanager
+    def fake_start_run(experiment, stage, tags=None, variant=None):
+        run = RecordingRun()
+        opened.append(SimpleNamespace(stage=stage, tags=tags, variant=variant, run=run))
+        yield run
+
+    def fake_train(cfg, train_cfg, body, data, corpus, on_epoch=None, progress=True):
+        trained.append((corpus, body, progress))
+        on_epoch("full", {"train_loss": 2.0}, 3)
+        return {"full/top1": 0.5}
+
+    monkeypatch.setattr(pipeline, "start_run", fake_start_run)
+    monkeypatch.setattr(pipeline, "run_train_slr", fake_train)
+    monkeypatch.setattr(pipeline, "load_body_model", lambda cfg: "body")
+    data = DataConfig(models_dir=str(tmp_path))
+    data.slr_dir.mkdir(parents=True)
+    for name in ("confusion_dev_b.png", "confusion_dev_a.png", "confusion_test_a.png"):
+        (data.slr_dir / name).write_bytes(b"")
+    cfg, train_cfg, body_cfg = SLRConfig(corpus="synthetic"), SLRTrainConfig(seed=5), BodyConfig()
+    report = pipeline.train_and_log(cfg, train_cfg, body_cfg, data, ExperimentConfig(), corpus, progress=False)
+    expected = corpus or "synthetic"
+    assert report == {"full/top1": 0.5} and trained == [(expected, "body", False)]
+    [run] = opened
+    assert (run.stage, run.variant) == ("train-slr", expected)
+    assert run.tags == {"corpus": expected, "variants": ",".join(train_cfg.variants), "body_model": body_cfg.model,
+                        "seed": "5"}
+    assert run.run.params["slr.corpus"] == "synthetic" and "slr_train.seed" in run.run.params
+    assert "data.models_dir" in run.run.params
+    assert run.run.metrics == [({"full/train_loss": 2.0}, 3), ({"full/top1": 0.5}, None)]
+    assert run.run.artifacts == [data.slr_dir / "metrics.json", data.slr_dir / "skipped.jsonl",
+                                 data.slr_dir / "confusion_dev_a.png", data.slr_dir / "confusion_dev_b.png"]
+    untrimmed = dataclasses.replace(cfg, trim=dataclasses.replace(cfg.trim, enabled=False))
+    pipeline.train_and_log(untrimmed, train_cfg, body_cfg, data, ExperimentConfig(), corpus, progress=True)
+    assert trained[-1] == (expected, None, True)  # no body model without trimming
