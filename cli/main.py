@@ -24,6 +24,8 @@
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
     m3t produce "TEXT" --language L [--system smlm|retrieval] [--out DIR]
                                           one sentence -> .pose, parameters (.npz) and an MP4 with a trained system
+    m3t translate INPUT --language L       a video, frame folder, .pose or .npz -> tracking, fitting, tokens ->
+                                          the SMLM's translation (and the judge's), with each step's time
     m3t score PRED REF [--definitions ...] [--language en] [--out DIR] [--format table|csv|json] [--any-fps]
                                           score anyone's output (.pose folders, shards, sentence files) under the
                                           field's definitions; clips that cannot be scored are listed with a reason
@@ -225,6 +227,27 @@ def _cmd_produce(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_translate(args: argparse.Namespace) -> int:
+    from m3t.config import load_params
+    from m3t.production.produce import ProductionError
+    from m3t.production.translate import translate_input
+
+    try:
+        result = translate_input(args.input, args.language, load_params(args.params), judge=not args.no_judge,
+                                 progress=True)
+    except ProductionError as exc:
+        print(f"m3t translate: {exc}", file=sys.stderr)
+        return 2
+    print(f"{result.input} ({result.kind}, {result.frames} frames, {result.language})")
+    print(f"  SMLM:  {result.smlm}")
+    if result.judge is not None:
+        print(f"  judge: {result.judge}")
+    print("  time: " + ", ".join(f"{step} {s:.1f} s" for step, s in result.seconds.items()))
+    for note in result.notes:
+        print(f"  note: {note}")
+    return 0
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -342,6 +365,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default=None, help="file name stem (default: a slug of the sentence)")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")
     p.set_defaults(func=_cmd_produce)
+    p = sub.add_parser("translate", help="one signing input (video, frame folder, .pose, .npz) -> text with the "
+                                         "trained SMLM and the judge")
+    p.add_argument("input", help="a video file, a frame folder, a .pose file or a .npz of parameters")
+    p.add_argument("--language", required=True, help="the sign language, as the corpus names it (e.g. ASL-SYN)")
+    p.add_argument("--no-judge", action="store_true", help="skip the back-translation judge")
+    p.set_defaults(func=_cmd_translate)
     p = sub.add_parser("score", help="score predictions against references (.pose folders or sentence files) under "
                                      "the field's named definitions (docs/scoring.md)")
     p.add_argument("prediction", help="folder of .pose files, a parameter shard (.parquet; the body model of "
