@@ -1158,7 +1158,7 @@ def fake_evaluation(monkeypatch, tmp_path):
              "test": [evaluation_clip(graph, "t1", "test", 4, seed=1, fps=40.0),
                       evaluation_clip(graph, "t2", "test", 3, label="HELLO", seed=2, fps=50.0),
                       evaluation_clip(graph, "t3", "test", 2, seed=3, text="one two one two one two")]}
-    rec = SimpleNamespace(judged=[], poses=[], videos=[], maps=[], smlm_asked=[], devices=[])
+    rec = SimpleNamespace(judged=[], poses=[], videos=[], maps=[], smlm_asked=[], devices=[], posed=[])
 
     def judge(judge_dir, rows, texts, cfg):
         rec.judged.append(SimpleNamespace(dir=judge_dir, rows=rows, texts=texts, cfg=cfg))
@@ -1172,7 +1172,8 @@ def fake_evaluation(monkeypatch, tmp_path):
 
     monkeypatch.setattr(pipeline, "load_systems", lambda data, device: rec.devices.append(device) or systems)
     monkeypatch.setattr(pipeline, "read_production_split", lambda data, split: split)
-    monkeypatch.setattr(pipeline, "skeleton_clips", lambda body, split, graph, progress, what: clips[split])
+    monkeypatch.setattr(pipeline, "skeleton_clips", lambda body, split, graph, progress, what: rec.posed.append(
+        (split, graph, what)) or clips[split])
     monkeypatch.setattr(pipeline, "_judge", judge)
     monkeypatch.setattr(pipeline, "_smlm_params", smlm_params)
     monkeypatch.setattr(pipeline, "graph_points", lambda body, params, identity, graph: params["points"])
@@ -1200,6 +1201,7 @@ def test_run_evaluate_scores_judges_exports_and_renders_every_system_split(fake_
     summary = run_evaluate(SGSAConfig(**{**TINY, "max_text_tokens": 4}), cfg, "the body", data, judge_cfg,
                            progress=False)
     assert rec.devices == ["cpu"] and rec.smlm_asked == [("dev", "the body"), ("test", "the body")]
+    assert rec.posed == [("dev", graph, "skeletons: dev"), ("test", graph, "skeletons: test")]  # the systems' graph
     assert (summary["dev/clips"], summary["dev/cut_text"], summary["test/clips"], summary["test/cut_text"]) == (
         1.0, 0.0, 3.0, 1.0)  # d0 has no frames; t3's 7 tokens are cut to 4
     for system in ("pt", "sgsa"):
