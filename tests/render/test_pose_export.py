@@ -284,3 +284,250 @@ def test_smplfx_export_without_hips(fx, tmp_path):
     assert (conf[:, _index(header, "POSE_LANDMARKS", "LEFT_KNEE")] == 0).all()
     assert (header.dimensions.width, header.dimensions.height) == (1024, 1024)
     pose_hide_legs(pose)  # legs already missing: still fine
+
+
+# ---- the holistic export by hand: a stub body whose MediaPipe points are its parameters
+NAMES = ("pose:left_shoulder", "pose:left_eye", "pose:right_shoulder", "pose:left_hip", "pose:right_hip", "pose:nose",
+         "pose:left_knee", "left_hand:wrist", "face:1")
+KIND = np.array([1, -1, 1, 1, 1, 0, 1, 1, 0])  # the left eye has no correspondence
+# header index of each name: POSE_LANDMARKS 0..32, FACE_LANDMARKS 33.., LEFT_HAND_LANDMARKS 501.., world 543..
+HEADER = [11, 2, 12, 23, 24, 0, 25, 501, 34]
+
+
+class _HolisticStub:
+    """A body model whose holistic keypoints are ``params["points"]`` (T, 9, 3), named :data:`NAMES`."""
+
+    def __init__(self, names=NAMES, kind=KIND):
+        self.names, self.kind = names, kind
+
+    def correspondence(self, name):
+        from m3t.body.protocol import Correspondence
+
+        assert name == "mediapipe_holistic"
+        return Correspondence(self.names, self.kind, np.arange(len(self.names)))
+
+    def keypoint_set(self, correspondence):
+        return correspondence
+
+    def forward_keypoints(self, params, identity, kp):
+        import torch
+
+        assert identity.dtype == torch.float32
+        return params["points"]
+
+
+def _stub_points() -> np.ndarray:
+    """(2, 9, 3) metres, protocol frame (X the subject's left, Y away, Z up); frame 1 is frame 0 moved 25 cm to
+    the subject's left, its face point lost."""
+    frame = np.array([[0.25, 0.0, 1.5], [9.0, 9.0, 9.0], [-0.25, 0.0, 1.5], [0.125, 0.0, 1.0], [-0.125, 0.0, 1.0],
+                      [0.0, -0.125, 1.75], [0.125, 0.0, 0.5], [0.5, -0.25, 1.25], [0.0, -0.125, 1.625]])
+    points = np.stack([frame, frame + [0.25, 0.0, 0.0]])
+    points[1, 8] = np.nan
+    return points
+
+
+def test_holistic_pose_places_every_point_by_hand():
+    """The fitted box (legs and points without correspondence aside) is x -0.25 .. 0.75, y = -Z -1.75 .. -1.0,
+    z = Y -0.25 .. 0 over both frames: on 200 x 100 px with 8 % margins the scale is min(168 / 1.0, 84 / 0.75) =
+    112 px/m, centred on (0.25, -1.375, -0.125). World landmarks: metres, origin between the hips per frame."""
+    from m3t.render.posefile import holistic_pose
+
+    points = _stub_points()
+    pose = holistic_pose(_HolisticStub(), {"points": points}, np.zeros(3), fps=12.5, width=200, height=100)
+    assert [(c.name, len(c.points), c.format) for c in pose.header.components] == [(n, k, "XYZC") for n, k in COUNTS]
+    dims = pose.header.dimensions
+    assert (dims.width, dims.height, dims.depth) == (200, 100, 0) and round(pose.header.version, 3) == 0.2
+    assert pose.body.fps == 12.5 and isinstance(pose.body.fps, float)
+    data, conf = np.ma.getdata(pose.body.data), np.asarray(pose.body.confidence)
+    assert data.shape == (2, 1, 576, 3) and data.dtype == np.float32 and conf.shape == (2, 1, 576)
+    assert conf.dtype == np.float32
+    data, conf = data[:, 0], conf[:, 0]
+    seen = np.zeros((2, 576), bool)
+    for k, name in zip(HEADER, NAMES):
+        if name != "pose:left_eye":
+            seen[:, k] = True
+    seen[1, 34] = False  # the face point lost in frame 1
+    seen[:, 543:] = seen[:, :33]  # world landmarks: the pose points
+    np.testing.assert_array_equal(conf, seen.astype(np.float32))
+    assert (data[~seen] == 0).all()  # unseen: coordinates 0
+    for t in range(2):
+        for k, (x, y, z) in zip(HEADER, points[t]):
+            if seen[t, k]:  # float32 output
+                np.testing.assert_allclose(data[t, k], [(x - 0.25) * 112 + 100, (1.375 - z) * 112 + 50,
+                                                        (y + 0.125) * 112], rtol=1e-6, atol=1e-4)
+                if k < 33:
+                    np.testing.assert_allclose(data[t, 543 + k], [x - 0.125 * t * 2, 1.0 - z, y], atol=1e-6)
+
+
+def test_holistic_pose_centres_the_world_on_the_shoulders_without_hips():
+    from m3t.render.posefile import holistic_pose
+
+    points = _stub_points()
+    points[1, 4] = np.nan  # the right hip lost in one frame: the shoulders are the origin in every frame
+    pose = holistic_pose(_HolisticStub(), {"points": points}, np.zeros(3), fps=25, width=200, height=100)
+    world = np.ma.getdata(pose.body.data)[:, 0, 543:]
+    np.testing.assert_allclose(world[:, 11], [[0.25, 0.0, 0.0], [0.25, 0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(world[:, 12], [[-0.25, 0.0, 0.0], [-0.25, 0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(world[:, 23], [[0.125, 0.5, 0.0], [0.125, 0.5, 0.0]], atol=1e-6)
+    assert (world[1, 24] == 0).all() and pose.body.confidence[1, 0, 543 + 24] == 0
+
+
+def test_holistic_pose_refuses_bad_canvases_empty_clips_and_a_body_without_origin():
+    import re
+
+    from m3t.render.posefile import holistic_pose
+
+    body, params = _HolisticStub(), {"points": _stub_points()}
+    for width, height in ((0, 10), (10, 0), (65536, 10), (10, 65536)):
+        with pytest.raises(ValueError, match=re.escape(f".pose export: canvas {width} x {height} px; each side must be "
+                                                       "in 1..65535")):
+            holistic_pose(body, params, np.zeros(3), 25.0, width, height)
+    big = holistic_pose(body, params, np.zeros(3), 25.0, 65535, 65535)  # the largest canvas a .pose file holds
+    assert (big.header.dimensions.width, big.header.dimensions.height) == (65535, 65535)
+    with pytest.raises(ValueError, match=re.escape(".pose export: no frames to write (holistic points of shape "
+                                                   "(0, 9, 3))")):
+        holistic_pose(body, {"points": np.zeros((0, 9, 3))}, np.zeros(3), 25.0)
+    lost = _stub_points()
+    lost[0, 0] = np.nan  # a shoulder lost in frame 0, a hip in frame 1
+    lost[1, 3] = np.nan
+    with pytest.raises(ValueError, match=re.escape(
+            ".pose export: the body model gives neither both hips nor both shoulders in every frame; "
+            "POSE_WORLD_LANDMARKS need one of them as origin")):
+        holistic_pose(body, {"points": lost}, np.zeros(3), 25.0)
+    for leg in ("knee", "ankle", "heel", "foot_index"):  # only a leg: legs are never fitted
+        with pytest.raises(ValueError, match="no valid point to fit"):
+            holistic_pose(_HolisticStub((f"pose:left_{leg}",), np.array([1])), {"points": np.ones((1, 1, 3))},
+                          np.zeros(3), 25.0)
+
+
+def test_export_pose_writes_what_holistic_pose_gives_on_a_1024_px_canvas_by_default(tmp_path):
+    import io
+
+    from m3t.render.posefile import holistic_pose
+
+    body, params = _HolisticStub(), {"points": _stub_points()}
+    path = export_pose(str(tmp_path / "stub.pose"), body, params, np.zeros(3), 10.0)
+    assert path == tmp_path / "stub.pose"
+    buffer = io.BytesIO()
+    holistic_pose(body, params, np.zeros(3), 10.0, 1024, 1024).write(buffer)
+    assert path.read_bytes() == buffer.getvalue()
+    pose = _read(path)
+    assert (pose.header.dimensions.width, pose.header.dimensions.height) == (1024, 1024) and pose.body.fps == 10.0
+    other = export_pose(tmp_path / "small.pose", body, params, np.zeros(3), 10.0, width=300, height=200)
+    assert (_read(other).header.dimensions.width, _read(other).header.dimensions.height) == (300, 200)
+
+
+def test_holistic_components_are_fresh_copies_of_the_header_template():
+    from m3t.render.posefile import _template, holistic_components
+
+    first, second = holistic_components(), holistic_components()
+    assert [c.name for c in first] == [n for n, _ in COUNTS] and all(c.format == "XYZC" for c in first)
+    for component, (name, points, limbs, colors) in zip(first, _template()):
+        assert component.name == name and component.points == list(points) and component.limbs == list(limbs)
+        assert component.colors == [tuple(c) for c in colors] and isinstance(component.points, list)
+    assert first[0].points[:2] == ["NOSE", "LEFT_EYE_INNER"] and first[2].points[0] == "WRIST"
+    first[0].points.append("TAIL")  # mutating one copy leaves the template and the next copy alone
+    assert len(second[0].points) == 33 and len(holistic_components()[0].points) == 33
+
+
+def test_the_holistic_order_names_at_most_five_unknown_points_and_the_parts():
+    import re
+
+    from m3t.render.posefile import _order
+
+    order = _order(("face:0", "pose:nose", "right_hand:wrist"))
+    assert order[0] == 1 and order[33] == 0 and order[33 + 468 + 21] == 2 and (order == -1).sum() == 33 + 468 + 42 - 3
+    assert order.dtype.kind == "i" and len(order) == 33 + 468 + 42
+    unknown = tuple(f"pose:tail{k}" for k in (6, 5, 4, 3, 2, 1))
+    with pytest.raises(ValueError, match=re.escape(
+            "holistic correspondence names ['pose:tail1', 'pose:tail2', 'pose:tail3', 'pose:tail4', 'pose:tail5'] "
+            "(of 6) match no point of pose-format's holistic header; expected 'part:name' with part in "
+            "['pose', 'face', 'left_hand', 'right_hand']")):
+        _order(unknown + ("pose:nose",))
+    with pytest.raises(ValueError, match=re.escape("['pose:NOSE'] (of 1)")):  # names are lower case
+        _order(("pose:NOSE",))
+
+
+def test_front_view_default_margin_and_only_seen_fitted_points():
+    import re
+
+    points = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [5.0, 3.0, -4.0]]])  # (1, 3, 3); point 2 far away
+    seen = np.array([[True, True, False]])  # point 2 missing, though in the fitted set
+    got = front_view(points, seen, np.ones(3, bool), 100, 100)
+    # box x 0 .. 1, y = -Z -0.5 .. 0, z = Y 0 .. 0: 8 % margins, scale min(84 / 1, 84 / 0.5) = 84
+    np.testing.assert_allclose(got[0, :2], [[8.0, 50 + 0.25 * 84, 0.0], [92.0, 50 - 0.25 * 84, 0.0]])
+    np.testing.assert_allclose(got[0, 2], [50 + 4.5 * 84, 50 + 4.25 * 84, 3 * 84])
+    flat = front_view(points[:, :1], seen[:, :1], np.ones(1, bool), 40, 20)  # one point: no span, the centre
+    np.testing.assert_allclose(flat, [[[20.0, 10.0, 0.0]]])
+    with pytest.raises(ValueError, match=re.escape(
+            "front view: no valid point to fit the canvas to (all points missing or non-finite)")):
+        front_view(points, seen, np.array([False, False, True]), 100, 100)
+
+
+def _tiny_graph():
+    from m3t.body.skeleton import SkeletonGraph
+
+    return SkeletonGraph("tiny", ("body:neck:base", "left_hand:wrist", "right_hand:wrist", "face:61"),
+                         ((0, 1), (0, 2), (0, 3)))
+
+
+def test_skeleton_pose_by_hand_one_component_coloured_by_region():
+    """Joints (protocol frame) on a 100 x 50 canvas: box x -0.5 .. 0.5, y = -Z -1.5 .. -1.0, z = Y 0 .. 0.25;
+    scale min(84 / 1, 42 / 0.5) = 84 px/m. A NaN joint: confidence 0, coordinates 0, the rest still placed."""
+    from m3t.render.posefile import skeleton_pose
+
+    points = np.array([[[0.0, 0.0, 1.25], [0.5, 0.0, 1.0], [-0.5, 0.25, 1.0], [0.0, 0.0, 1.5]]] * 2)
+    points[1, 2] = [np.nan, 0.0, 0.0]
+    points[1, :2, 0] -= 0.25  # frame 1: moved, still within the box of frame 0
+    pose = skeleton_pose(points.tolist(), _tiny_graph(), fps=30, width=100, height=50)
+    (component,) = pose.header.components
+    assert (component.name, component.points, component.format) == ("tiny", list(_tiny_graph().joints), "XYZC")
+    assert [tuple(limb) for limb in component.limbs] == [(0, 1), (0, 2), (0, 3)]
+    assert [tuple(c) for c in component.colors] == [(80, 80, 80), (214, 39, 40), (31, 119, 180), (44, 160, 44)]
+    dims = pose.header.dimensions
+    assert (dims.width, dims.height, dims.depth) == (100, 50, 0) and round(pose.header.version, 3) == 0.2
+    assert pose.body.fps == 30.0 and isinstance(pose.body.fps, float)
+    data, conf = np.ma.getdata(pose.body.data), np.asarray(pose.body.confidence)
+    assert data.dtype == np.float32 and conf.dtype == np.float32 and data.shape == (2, 1, 4, 3)
+    np.testing.assert_array_equal(conf[:, 0], [[1, 1, 1, 1], [1, 1, 0, 1]])
+    for t in range(2):
+        for k, (x, y, z) in enumerate(points[t]):
+            want = [0.0, 0.0, 0.0] if (t, k) == (1, 2) else [x * 84 + 50, (1.25 - z) * 84 + 25, (y - 0.125) * 84]
+            np.testing.assert_allclose(data[t, 0, k], want, atol=1e-4)
+
+
+def test_skeleton_pose_refuses_bad_shapes_and_canvases():
+    import re
+
+    from m3t.render.posefile import skeleton_pose
+
+    graph, ok = _tiny_graph(), np.zeros((2, 4, 3))
+    ok[:, 1, 0] = 1.0
+    for bad in (np.zeros((0, 4, 3)), np.zeros((2, 5, 3)), np.zeros((2, 4, 2)), np.zeros((4, 3))):
+        with pytest.raises(ValueError, match=re.escape(f".pose export of skeleton 'tiny': points of shape {bad.shape}, "
+                                                       "expected (T > 0, 4, 3)")):
+            skeleton_pose(bad, graph, 25.0)
+    for width, height in ((0, 10), (10, 0), (65536, 10), (10, 65536)):
+        with pytest.raises(ValueError, match=re.escape(f".pose export: canvas {width} x {height} px; each side must be "
+                                                       "in 1..65535")):
+            skeleton_pose(ok, graph, 25.0, width, height)
+    for width, height in ((1, 1), (65535, 65535)):
+        dims = skeleton_pose(ok, graph, 25.0, width, height).header.dimensions
+        assert (dims.width, dims.height) == (width, height)
+    dims = skeleton_pose(ok, graph, 25.0).header.dimensions
+    assert (dims.width, dims.height) == (1024, 1024)
+
+
+def test_export_skeleton_pose_writes_what_skeleton_pose_gives(tmp_path):
+    import io
+
+    from m3t.render.posefile import export_skeleton_pose, skeleton_pose
+
+    points = np.array([[[0.0, 0.0, 1.25], [0.5, 0.0, 1.0], [-0.5, 0.25, 1.0], [0.0, 0.0, 1.5]]])
+    path = export_skeleton_pose(str(tmp_path / "a" / "s.pose"), points, _tiny_graph(), 20.0)
+    assert path == tmp_path / "a" / "s.pose"
+    buffer = io.BytesIO()
+    skeleton_pose(points, _tiny_graph(), 20.0, 1024, 1024).write(buffer)
+    assert path.read_bytes() == buffer.getvalue()
+    small = _read(export_skeleton_pose(tmp_path / "b.pose", points, _tiny_graph(), 20.0, width=64, height=32))
+    assert (small.header.dimensions.width, small.header.dimensions.height) == (64, 32) and small.body.fps == 20.0
