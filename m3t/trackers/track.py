@@ -84,7 +84,7 @@ def save_track(track: Track, path: str | Path) -> Path:
             confidence=track.confidence.astype(np.float32),
             landmark_set=np.array(track.landmark_set),
             image_size=np.asarray(track.image_size, dtype=np.int64),
-            fps=np.array(track.fps, dtype=np.float64),
+            fps=np.array(float(np.asarray(track.fps).reshape(())), dtype=np.float64),  # a 1-element array: its value
             intrinsics=np.asarray(track.intrinsics, dtype=np.float32),
             tracker=np.array(track.tracker),
             **{f"init__{k}": np.asarray(v, dtype=np.float32) for k, v in (track.init or {}).items()},
@@ -134,6 +134,7 @@ def load_track(path: str | Path) -> Track:
         if value.ndim < 1 or value.shape[0] != kp.shape[0]:
             raise TrackError(f"track file {path}: extra {name!r} has shape {value.shape}; expected "
                              f"({kp.shape[0]}, ...), one entry per frame; delete the file and re-run tracking")
-    return Track(kp, conf, landmark_set, tuple(int(v) for v in fields["image_size"]), float(fields["fps"]),
+    fps = float(np.asarray(fields["fps"]).reshape(()))  # one value (_fps_problem), stored 0-d or as [value]
+    return Track(kp, conf, landmark_set, tuple(int(v) for v in fields["image_size"]), fps,
                  np.asarray(intr, dtype=np.float32), str(fields.get("tracker", "unknown")), init or None,
                  extras or None)

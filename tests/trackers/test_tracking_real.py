@@ -1203,3 +1203,16 @@ def test_real_clips_are_tracked_by_their_media_kind(tmp_path, monkeypatch):
     with pytest.raises(ClipRefused, match=re.escape("MediaPipe tracking needs the `mediapipe` package: install it")) as refused:
         dispatch._holistic(tmp_path / "v.mp4", 25.0, mph.MediaPipeConfig())
     assert refused.value.group == "mediapipe not installed"
+
+
+def test_a_one_element_fps_array_round_trips_as_its_value(tmp_path):
+    """A tracker reporting its rate as a one-element array (``np.array([30.0])``) is accepted by ``save_track``
+    and read back as the number, not refused by ``load_track`` with a conversion error."""
+    from m3t.trackers.track import Track, load_track, save_track
+
+    track = Track(np.zeros((1, 543, 2), np.float32), np.ones((1, 543), np.float32), "mediapipe_holistic", (4, 4),
+                  np.array([30.0]), np.full(4, np.nan, np.float32), "x")
+    back = load_track(save_track(track, tmp_path / "t.npz"))
+    assert back.fps == 30.0 and isinstance(back.fps, float)
+    with np.load(tmp_path / "t.npz") as stored:
+        assert stored["fps"].shape == ()
