@@ -58,11 +58,13 @@ def markdown(text: str, table_id: str = "") -> str:
     as HTML; the table gets ``table_id``."""
     out, rows, items = [], [], []
 
-    def flush() -> None:
+    def flush_table() -> None:
         if rows:
             header, *body = rows
             out.append(table(header, body, table_id))
             rows.clear()
+
+    def flush_items() -> None:
         if items:
             out.append("<ul class=note>" + "".join(f"<li>{esc(i)}</li>" for i in items) + "</ul>")
             items.clear()
@@ -70,16 +72,20 @@ def markdown(text: str, table_id: str = "") -> str:
     for line in text.splitlines():
         stripped = line.strip()
         if stripped.startswith("|"):
+            flush_items()
             cells = [c.strip() for c in stripped.strip("|").split("|")]
             if not all(set(c) <= set("-: ") for c in cells):  # the |---| separator row
                 rows.append(cells)
             continue
-        flush()
-        if stripped.startswith("- "):
+        flush_table()
+        if stripped.startswith("- "):  # consecutive items make one list
             items.append(stripped[2:])
-        elif stripped:
+            continue
+        flush_items()
+        if stripped:
             out.append(f"<p class=note>{esc(stripped)}</p>")
-    flush()
+    flush_table()
+    flush_items()
     return "".join(out)
 
 

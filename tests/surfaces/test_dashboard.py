@@ -38,6 +38,16 @@ def test_markdown_tables_become_html_tables():
     assert "<p class=note>Title line</p>" in out and "<li>a note</li>" in out
 
 
+def test_consecutive_markdown_items_make_one_list():
+    """The notes under a table (``m3t ...-table`` output) are one list, however many; a paragraph or a table row
+    between items starts a new one."""
+    assert markdown("- a\n- b\n- c") == "<ul class=note><li>a</li><li>b</li><li>c</li></ul>"
+    assert markdown("- a\ntext\n- b\n| x |\n|---|\n| 1 |\n- c", "t") == (
+        "<ul class=note><li>a</li></ul><p class=note>text</p><ul class=note><li>b</li></ul>"
+        '<table id="t"><thead><tr><th>x</th></tr></thead><tbody><tr><td class=num>1</td></tr></tbody></table>'
+        "<ul class=note><li>c</li></ul>")
+
+
 def _table(page: str, table_id: str) -> list[list[str]]:
     """Rows (header first) of the table with ``table_id``: cell texts."""
     found = re.search(rf'<table id="{table_id}">(.*?)</table>', page, re.S)
