@@ -18,7 +18,7 @@ from tools.code_deps import DVC_YAML, ROOT, code_deps, imports, is_code, modules
 # foundation every other component computes with; shards (the data contract) sit below fitting, which writes
 # them; metrics and render depend only on the body model and shards, so trainers can select checkpoints by
 # them; models (smlm, slr, backtranslation and the coming sgsa) sit above tokenizers; the claims read every
-# model's runs.
+# model's runs; the applications (m3t score / produce / translate) use the trained models through params.yaml.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("m3t", "m3t.atomic", "m3t.runtime", "m3t.training", "m3t.camera", "m3t.experiment", "m3t.dataclass_io",
               "m3t.reporting", "m3t.digest", "m3t.optimizer", "m3t.checkpoints", "m3t.training_jobs",
@@ -34,6 +34,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("models", ("m3t.smlm", "m3t.sgsa", "m3t.slr", "m3t.backtranslation")),
     ("claims", ("m3t.claims",)),
     ("config", ("m3t.config",)),
+    ("applications", ("m3t.scoring", "m3t.production")),  # one input at a time, over every trained model
     ("stages", ("m3t.stages",)),
     ("dashboards", ("dashboards",)),
     ("flows", ("flows",)),
