@@ -86,3 +86,23 @@ def test_newest_finished_keeps_the_first_finished_run_per_key_in_newest_first_or
     assert list(newest) == ["x", "y", "f1234567"]
     assert [r.run_id for r in newest.values()] == ["c-newest-x", "d-newest-y", "f12345678-untagged"]
     assert newest_finished([run("a", "FAILED", "x")], variant_of) == {}
+
+
+def test_metric_histories_read_the_configured_store_not_mlflows_current_one(tmp_path, monkeypatch):
+    """Curves come from the store of ``cfg`` (made absolute against ``root``), whatever store MLflow's process-wide
+    tracking URI points at when they are read (e.g. the last one another run used)."""
+    import mlflow
+
+    cfg = ExperimentConfig(tracking_uri="sqlite:///store.db", artifact_dir="artifacts", experiment="t")
+    with start_run(cfg, "train-tokenizers", root=tmp_path) as run:
+        for epoch in (1, 2):
+            run.log_metrics({"loss": float(epoch)}, step=epoch)
+    run_id = fetch_runs(cfg, root=tmp_path)[0].run_id
+    before = mlflow.get_tracking_uri()
+    try:
+        mlflow.set_tracking_uri(absolute_uri("sqlite:///elsewhere.db", tmp_path))
+        monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)  # set_tracking_uri also exports it
+        assert metric_histories(cfg, run_id, ["loss"], root=tmp_path) == {"loss": [(1, 1.0), (2, 2.0)]}
+    finally:
+        mlflow.set_tracking_uri(before)
+        monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)

@@ -707,6 +707,8 @@ def test_the_up_axis_is_where_the_neck_sits_furthest_from_the_mean():
     two = np.concatenate([points, points + [0.0, 0.0, 0.2]])  # averaged over frames
     two[1, 0] = [0.0, 0.9, 1.2]
     assert _up_axis(two, None) == 1
+    # the neck (joint 0) decides, not another joint: joint 1 sits furthest along Y, the neck along Z
+    assert _up_axis(np.array([[[0.0, 0.0, 5.0], [0.0, 5.0, 0.0], [0.0, 0.0, 0.0]]]), None) == 2
 
 
 def test_a_skeleton_frame_is_drawn_exactly_at_sub_pixel_positions():
