@@ -88,9 +88,11 @@ def test_newest_finished_keeps_the_first_finished_run_per_key_in_newest_first_or
     assert newest_finished([run("a", "FAILED", "x")], variant_of) == {}
 
 
-def test_metric_histories_read_the_configured_store_not_mlflows_current_one(tmp_path, monkeypatch):
+def test_metric_histories_read_the_configured_store_not_mlflows_current_one(tmp_path):
     """Curves come from the store of ``cfg`` (made absolute against ``root``), whatever store MLflow's process-wide
     tracking URI points at when they are read (e.g. the last one another run used)."""
+    import os
+
     import mlflow
 
     cfg = ExperimentConfig(tracking_uri="sqlite:///store.db", artifact_dir="artifacts", experiment="t")
@@ -98,11 +100,14 @@ def test_metric_histories_read_the_configured_store_not_mlflows_current_one(tmp_
         for epoch in (1, 2):
             run.log_metrics({"loss": float(epoch)}, step=epoch)
     run_id = fetch_runs(cfg, root=tmp_path)[0].run_id
-    before = mlflow.get_tracking_uri()
+    uri_before, env_before = mlflow.get_tracking_uri(), os.environ.get("MLFLOW_TRACKING_URI")
     try:
         mlflow.set_tracking_uri(absolute_uri("sqlite:///elsewhere.db", tmp_path))
-        monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)  # set_tracking_uri also exports it
+        os.environ.pop("MLFLOW_TRACKING_URI", None)  # set_tracking_uri also exports it: the user's choice
         assert metric_histories(cfg, run_id, ["loss"], root=tmp_path) == {"loss": [(1, 1.0), (2, 2.0)]}
-    finally:
-        mlflow.set_tracking_uri(before)
-        monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    finally:  # both exactly as before: a leaked URI would send every later test's runs to this store
+        mlflow.set_tracking_uri(uri_before)
+        if env_before is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = env_before
