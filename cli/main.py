@@ -27,7 +27,7 @@
     m3t translate INPUT --language L       a video, frame folder, .pose or .npz -> tracking, fitting, tokens ->
                                           the SMLM's translation (and the judge's), with each step's time
     m3t score PRED REF [--definitions ...] [--language en] [--out DIR] [--format table|csv|json] [--any-fps]
-                                          score anyone's output (.pose folders, shards, sentence files) under the
+                                          score anyone's output (.pose / SMPL-X folders, shards, sentences) under the
                                           field's definitions; clips that cannot be scored are listed with a reason
 
 This module parses the command line and holds the workspace and service commands; the experiment commands (sweeps,
@@ -371,14 +371,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--language", required=True, help="the sign language, as the corpus names it (e.g. ASL-SYN)")
     p.add_argument("--no-judge", action="store_true", help="skip the back-translation judge")
     p.set_defaults(func=_cmd_translate)
-    p = sub.add_parser("score", help="score predictions against references (.pose folders or sentence files) under "
-                                     "the field's named definitions (docs/scoring.md)")
-    p.add_argument("prediction", help="folder of .pose files, a parameter shard (.parquet; the body model of "
-                                      "params.yaml), or a .txt / .tsv file of sentences")
+    p = sub.add_parser("score", help="score predictions against references (.pose folders, SMPL-X parameter folders, "
+                                     "shards or sentence files) under the field's named definitions (docs/scoring.md)")
+    p.add_argument("prediction", help="folder of .pose files, folder of SMPL-X parameter files in SOKE's layout "
+                                      "(.pkl / .npz; scored on SMPL-FX), a parameter shard (.parquet; the body model "
+                                      "of params.yaml), or a .txt / .tsv file of sentences")
     p.add_argument("reference", help="the references, same kind; clips pair by relative path / line / id")
     p.add_argument("--definitions", nargs="+", default=None, metavar="NAME",
-                   help="pose: pose_eval slrtp; parameters: m3t soke_exact; text: slt soke slrtp (default: every "
-                        "one that applies)")
+                   help="pose: pose_eval slrtp; parameters and SMPL-X folders: m3t soke_exact; text: slt soke "
+                        "slrtp (default: every one that applies)")
     p.add_argument("--language", default="en", help="language of sentence files (zh: Chinese tokenisation)")
     p.add_argument("--judge", default=None, help="back-translation checkpoints for shards (default: the workspace's "
                                                  "models/backtranslation when trained)")

@@ -22,6 +22,7 @@ option records for the import (:mod:`m3t.fitting.imports`). The split folder ``v
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,7 +87,7 @@ def _frame_files(folder: Path) -> tuple[list[Path], str | None]:
     frames = [p for p in folder.iterdir() if p.suffix == ".pkl"]
     bad = [p.name for p in frames if frame_number(p.stem) is None]
     if bad:
-        return [], (f"frame pickle {sorted(bad)[0]} has no frame number (expected <n>.pkl, images<n>.pkl or "
+        return [], (f"frame pickle {min(bad)} has no frame number (expected <n>.pkl, images<n>.pkl or "
                     f"<clip>_<n>_3D.pkl)")
     if not frames:
         return [], "missing media (no <frame>.pkl files)"
@@ -117,11 +118,18 @@ def load_smplx_sequence(path: str | Path) -> dict[str, np.ndarray]:
     files, problem = _frame_files(folder)
     if problem:
         raise SmplxSequenceError(f"{folder}: {problem}", folder, None)
+    return stack_smplx_frames((file, load_data_pickle(file, allow_numpy=True)) for file in files)
+
+
+def stack_smplx_frames(records: Iterable[tuple[Path, object]]) -> dict[str, np.ndarray]:
+    """(T, D) float32 arrays per SMPL-X key from T frame records ``(file, frame dict)`` in time order: SOKE's or
+    the smplx package's key names, one frame's values per key ((D,) or (1, D)). The checks and messages of
+    :func:`load_smplx_sequence`, which reads one record per frame pickle; at least one record."""
     rows: dict[str, list[np.ndarray]] = {}
     optional: set[str] = set()
     soke = False
-    for i, file in enumerate(files):
-        raw = load_data_pickle(file, allow_numpy=True)
+    first: Path | None = None
+    for i, (file, raw) in enumerate(records):
         if not isinstance(raw, dict):
             raise SmplxSequenceError(f"{file}: expected a dict of SMPL-X arrays, found {type(raw).__name__}",
                                      file, None)
@@ -129,10 +137,11 @@ def load_smplx_sequence(path: str | Path) -> dict[str, np.ndarray]:
         if i == 0:
             optional = {k for k in SMPLX_OPTIONAL if k in frame}
             soke = frame is not raw
+            first = file
         shown = {v: k for k, v in SOKE_NAMES.items()} if soke else {}  # errors name keys as the files do
         for key in (*SMPLX_DIMS, *sorted(optional)):
             if key not in frame:
-                raise SmplxSequenceError(f"{file}: key {key!r} missing (present in {files[0].name})"
+                raise SmplxSequenceError(f"{file}: key {key!r} missing (present in {first.name})"
                                          if key in optional else f"{file}: SMPL-X key {shown.get(key, key)!r} missing",
                                          file, shown.get(key, key))
             value = np.asarray(frame[key], dtype=np.float32).reshape(-1)  # (1, D) and (D,) both occur
@@ -145,7 +154,7 @@ def load_smplx_sequence(path: str | Path) -> dict[str, np.ndarray]:
         extra = set(SMPLX_OPTIONAL) & set(frame) - optional
         if extra:
             key = min(extra)
-            raise SmplxSequenceError(f"{file}: key {key!r} present but absent in {files[0].name}", file, key)
+            raise SmplxSequenceError(f"{file}: key {key!r} present but absent in {first.name}", file, key)
     return {k: np.stack(v) for k, v in rows.items()}  # (T, D)
 
 

@@ -138,7 +138,24 @@ def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: 
     if not pairs:
         raise ScoreInputError(f"no clip could be scored ({len(report.unscored)} refused; "
                               + "; ".join(f"{u['clip']}: {u['reason']}" for u in report.unscored[:3]) + ")")
-    for name in (d for d in chosen if d in MOTION_DEFINITIONS):
+    score_motion_pairs(report, pairs, body, [d for d in chosen if d in MOTION_DEFINITIONS])
+    text = [d for d in chosen if d in TEXT_DEFINITIONS]
+    if text:
+        if judge is None:
+            raise ScoreInputError(f"definitions {text} score back-translated sentences and need a judge: the "
+                                  "folder of back-translation checkpoints (`dvc repro train-backtranslation` writes "
+                                  "models/backtranslation)")
+        _backtranslated(report, pairs, {c: v[0] for c, v in references.clips.items()}, judge, text, beam_size,
+                        length_penalty)
+    report.notes.append(f"body model: {body.name}; both sides posed with the reference's identity; metres")
+    return report
+
+
+def score_motion_pairs(report: ScoreReport, pairs: Sequence[MotionPair], body: BodyModel,
+                       definitions: Sequence[str]) -> None:
+    """Score ``pairs`` under each motion definition of ``definitions`` (``m3t``, ``soke_exact``) with
+    :class:`MotionScorer` into ``report``: keys ``<definition>_<metric>``, the clip count, every clip's values."""
+    for name in definitions:
         try:
             scorer = MotionScorer(body, MotionMetricsConfig(mode=name))
         except SokeModeError as exc:
@@ -151,16 +168,6 @@ def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: 
         for row in scores.per_clip:
             report.per_clip += [{"clip": row.clip_id, "definition": name, "metric": f"{name}_{k}", "value": v}
                                 for k, v in row.metrics.items()]
-    text = [d for d in chosen if d in TEXT_DEFINITIONS]
-    if text:
-        if judge is None:
-            raise ScoreInputError(f"definitions {text} score back-translated sentences and need a judge: the "
-                                  "folder of back-translation checkpoints (`dvc repro train-backtranslation` writes "
-                                  "models/backtranslation)")
-        _backtranslated(report, pairs, {c: v[0] for c, v in references.clips.items()}, judge, text, beam_size,
-                        length_penalty)
-    report.notes.append(f"body model: {body.name}; both sides posed with the reference's identity; metres")
-    return report
 
 
 def _backtranslated(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, judge: Path,

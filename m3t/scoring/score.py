@@ -9,6 +9,10 @@ Inputs (:func:`score`):
   ``pose_eval`` (every variant of :data:`m3t.metrics.pose_eval.VARIANTS`, the mean distance over clips) and
   ``slrtp`` (DTW-MJE, wrist path ratio, duration ratio over the 178 keypoints, pooled as the challenge pools;
   its 25 fps rule applies to each side's own rate);
+- **SMPL-X parameter folders**: two folders of SMPL-X parameters in SOKE's layout (``.pkl`` / ``.npz`` per clip,
+  or per-frame pickles in one folder per clip; :mod:`m3t.scoring.smplx_folders`), paired by path as ``.pose``
+  files are, converted to SMPL-FX by the SOKE import: definitions ``m3t`` and ``soke_exact`` (needs body.model
+  ``smplfx``);
 - **parameter shards**: two Parquet shards of this project (:mod:`m3t.scoring.params`; the prediction may be a
   token shard such as generate-smlm's ``generated.parquet``, decoded by the workspace's tokenizers): definitions
   ``m3t`` and ``soke_exact`` on the workspace's body model, and the text definitions of the judge's
@@ -52,15 +56,31 @@ from m3t.metrics.slrtp import (
 from m3t.scoring.params import score_parameter_shards
 from m3t.scoring.poses import PoseClip, ScoreInputError, read_pose_clip, slrtp_array
 from m3t.scoring.report import ScoreReport, check_definitions, pairing
+from m3t.scoring.smplx_folders import (
+    PARAMETER_SUFFIXES,
+    parameter_files,
+    score_smplx_folders,
+)
 
 POSE_DEFINITIONS = ("pose_eval", "slrtp")
 TEXT_SUFFIXES = (".txt", ".tsv")
+_KIND_NAMES = {"pose": ".pose files (or nothing scorable)", "smplx": "SMPL-X parameter files"}
 
 
 # ---- inputs ---------------------------------------------------------------------------------------------------
 def pose_files(folder: Path) -> dict[str, Path]:
     """Clip id (path below ``folder`` without ``.pose``, ``/``-separated) -> file, for every ``.pose`` below it."""
     return {p.relative_to(folder).with_suffix("").as_posix(): p for p in sorted(folder.rglob("*.pose"))}
+
+
+def _folder_kind(folder: Path) -> str:
+    """``"pose"`` (``.pose`` files) or ``"smplx"`` (SMPL-X parameter files, :mod:`m3t.scoring.smplx_folders`), by
+    the files' suffixes; a folder holding both is an error."""
+    poses, params = next(folder.rglob("*.pose"), None), next(iter(parameter_files(folder)), None)
+    if poses is not None and params is not None:
+        raise ScoreInputError(f"{folder} holds both .pose files ({poses.relative_to(folder)}) and SMPL-X parameter "
+                              f"files ({params.relative_to(folder)}); score each kind from a folder of its own")
+    return "smplx" if params is not None else "pose"
 
 
 def read_sentences(path: Path) -> dict[str, str]:
@@ -87,13 +107,15 @@ def score(prediction: str | Path, reference: str | Path, definitions: Sequence[s
           language: str = "en", progress: Callable[[Iterable], Iterable] | None = None,
           any_fps: bool = False, body: BodyModel | Callable[[], BodyModel] | None = None,
           judge: str | Path | None = None, beam_size: int = 1, length_penalty: float = 1.0,
-          tokenizers_dir: str | Path | None = None) -> ScoreReport:
+          tokenizers_dir: str | Path | None = None, smplx_path: str | Path | None = None,
+          flat_hand_mean: bool = False) -> ScoreReport:
     """Score ``prediction`` against ``reference`` (two folders of ``.pose`` files, or two sentence files; see
     the module doc) under ``definitions`` (default: every one that applies to the inputs); ``any_fps``: see
     :func:`score_pose_folders`; ``body``: the body model of parameter shards, or a function that loads it (called
     only for shards); ``judge``, ``beam_size``, ``length_penalty``: back-translation checkpoints and their
     decoding for the text definitions of shards; ``tokenizers_dir``: the tokenizers that decode a token shard
-    (what generate-smlm writes)."""
+    (what generate-smlm writes); ``smplx_path``, ``flat_hand_mean``: the SMPL-X file whose mean hand the hand poses
+    of SMPL-X parameter folders are relative to, or that they are absolute (:func:`score_smplx_folders`)."""
     pred, ref = Path(prediction), Path(reference)
     for path in (pred, ref):
         if not path.exists():
@@ -106,11 +128,21 @@ def score(prediction: str | Path, reference: str | Path, definitions: Sequence[s
         return score_parameter_shards(pred, ref, model, definitions, progress, None if judge is None else Path(judge),
                                       beam_size, length_penalty, None if tokenizers_dir is None else Path(tokenizers_dir))
     if pred.is_dir() and ref.is_dir():
+        kinds = _folder_kind(pred), _folder_kind(ref)
+        if "smplx" in kinds and kinds[0] != kinds[1]:
+            raise ScoreInputError(f"{pred} holds {_KIND_NAMES[kinds[0]]}, {ref} holds {_KIND_NAMES[kinds[1]]}; "
+                                  "score a prediction against references of the same kind")
+        if kinds[0] == "smplx":
+            if body is None:
+                raise ScoreInputError(f"{pred} and {ref} hold SMPL-X parameter files: scoring them needs the SMPL-FX "
+                                      "body model (body.model: smplfx in params.yaml)")
+            return score_smplx_folders(pred, ref, body, definitions, progress, smplx_path, flat_hand_mean)
         return score_pose_folders(pred, ref, definitions, progress, any_fps)
     if pred.suffix in TEXT_SUFFIXES and ref.suffix in TEXT_SUFFIXES and pred.is_file() and ref.is_file():
         return score_sentences(pred, ref, language, definitions)
     raise ScoreInputError(f"cannot score {pred} against {ref}: give two folders of .pose files, two parameter "
-                          f"shards (.parquet) or two sentence files ({' / '.join(TEXT_SUFFIXES)})")
+                          f"shards (.parquet) or two sentence files ({' / '.join(TEXT_SUFFIXES)}), or two folders of "
+                          f"SMPL-X parameter files ({' / '.join(PARAMETER_SUFFIXES)})")
 
 
 def score_sentences(pred: Path, ref: Path, language: str, definitions: Sequence[str] | None = None) -> ScoreReport:
