@@ -50,7 +50,9 @@ def cmd_smlm_table(args: argparse.Namespace) -> int:
     from m3t.experiment import fetch_runs
     from m3t.smlm.table import production_table
 
-    print(production_table(fetch_runs(load_params(args.params).experiment, stage="evaluate-smlm")))
+    experiment = load_params(args.params).experiment
+    print(production_table(fetch_runs(experiment, stage="evaluate-smlm"),
+                           baselines=fetch_runs(experiment, stage="evaluate-baselines")))
     return 0
 
 
@@ -61,7 +63,8 @@ def cmd_bt_table(args: argparse.Namespace) -> int:
 
     experiment = load_params(args.params).experiment
     print(backtranslation_table(fetch_runs(experiment, stage="evaluate-backtranslation"),
-                                fetch_runs(experiment, stage="evaluate-smlm")))
+                                fetch_runs(experiment, stage="evaluate-smlm"),
+                                fetch_runs(experiment, stage="evaluate-baselines")))
     return 0
 
 
@@ -90,10 +93,12 @@ def cmd_sgsa_table(args: argparse.Namespace) -> int:
     from m3t.experiment import fetch_runs
     from m3t.sgsa.table import adjacency_table, cross_table, layers_table
 
-    records = fetch_runs(load_params(args.params).experiment, stage="evaluate-sgsa")
+    experiment = load_params(args.params).experiment
+    records = fetch_runs(experiment, stage="evaluate-sgsa")
+    baselines = fetch_runs(experiment, stage="evaluate-baselines")
     tables = {"1": layers_table, "2": adjacency_table, "3": cross_table}
     chosen = [args.table] if getattr(args, "table", "all") != "all" else list(tables)
-    print("\n\n".join(tables[t](records) for t in chosen))
+    print("\n\n".join(tables[t](records, baselines=baselines) for t in chosen))
     return 0
 
 

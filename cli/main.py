@@ -15,14 +15,14 @@
     m3t smlm-table                        print the Tab. 1-style SMLM comparison (one row per variant)
     m3t bt-table                          print Tab. 2: back-translation of GT and generated motion (SL-T metrics)
     m3t sgsa-sweep 1|2 [--seeds 0 1 2]    SGSA Tab. 1 / 2 sweeps by dvc exp (opt-in: minutes per setting), then the table
-    m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, ground truth; same judges)
+    m3t sgsa-table [--table 1|2|3]        print SGSA Tab. 1-3 (Tab. 3: PT, SGSA, SMLM, baselines, ground truth; same judges)
     m3t claims [--min-seeds 3]            the papers' claims on the runs: paper vs ours, interval, verdict, run ids
     m3t study [--preset study] [--seeds 0 1 2 3 4] [--dry-run] [--only sgsa ...] [--set KEY=VALUE ...]
                                           every variant and seed the claims need as DVC experiments, then judged
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
-    m3t produce "TEXT" --language L [--system smlm|retrieval] [--out DIR]
+    m3t produce "TEXT" --language L [--system smlm|retrieval|lexicon|pt|sgsa] [--gloss G] [--out DIR]
                                           one sentence -> .pose, parameters (.npz) and an MP4 with a trained system
     m3t translate INPUT --language L       a video, frame folder, .pose or .npz -> tracking, fitting, tokens ->
                                           the SMLM's translation (and the judge's), with each step's time
@@ -212,12 +212,12 @@ def _cmd_produce(args: argparse.Namespace) -> int:
 
     try:
         result = produce(args.text, args.language, load_params(args.params), args.system, args.out, args.name,
-                         video=not args.no_video, progress=True)
+                         video=not args.no_video, progress=True, gloss=args.gloss)
     except ProductionError as exc:
         print(f"m3t produce: {exc}", file=sys.stderr)
         return 2
     print(f"{result.system}: {result.frames} frames at {result.fps:g} fps for {result.text!r} ({result.language})")
-    for key in ("retrieved_clip", "retrieved_text", "match", "chrf", "steps", "stopped"):
+    for key in ("retrieved_clip", "retrieved_text", "match", "chrf", "steps", "stopped", "input", "signs", "entries", "skeleton"):
         if key in result.details:
             print(f"  {key}: {result.details[key]}")
     if result.unhandled_words:
@@ -248,6 +248,16 @@ def _cmd_translate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _workspace_smplx(params_path: str) -> str | None:
+    """body.smplx_path of the workspace's params (the mean hand of SMPL-X parameter folders), None without one."""
+    from m3t.config import load_params
+
+    try:
+        return str(load_params(params_path).body.smplx_path)
+    except (OSError, ValueError):
+        return None
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -258,7 +268,8 @@ def _cmd_score(args: argparse.Namespace) -> int:
     try:
         report = score(args.prediction, args.reference, definitions, args.language, any_fps=args.any_fps,
                        progress=lambda ids: tqdm(ids, desc="scoring", unit="clip", disable=None),
-                       body=lambda: _workspace_body(args.params), **_workspace_judge(args))
+                       body=lambda: _workspace_body(args.params), smplx_path=_workspace_smplx(args.params),
+                       **_workspace_judge(args))
     except ScoreInputError as exc:
         print(f"m3t score: {exc}", file=sys.stderr)
         return 2
@@ -359,8 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("produce", help="one sentence -> signing (.pose, parameters, MP4) with a trained system")
     p.add_argument("text", help="the sentence, in the spoken language of the corpus")
     p.add_argument("--language", required=True, help="the sign language, as the corpus names it (e.g. ASL-SYN)")
-    p.add_argument("--system", choices=("smlm", "retrieval"), default="smlm",
-                   help="smlm: the trained SMLM; retrieval: the nearest training clip's motion (a baseline)")
+    p.add_argument("--system", choices=("smlm", "retrieval", "lexicon", "pt", "sgsa"), default="smlm",
+                   help="smlm: the trained SMLM; retrieval: the nearest training clip's motion; lexicon: stored "
+                        "isolated signs stitched (the two baselines); pt / sgsa: the skeletal systems (a skeleton)")
+    p.add_argument("--gloss", default=None, help="lexicon: the gloss sequence to sign (default: the text's words)")
     p.add_argument("--out", default="produced", help="folder of the outputs (default: produced/)")
     p.add_argument("--name", default=None, help="file name stem (default: a slug of the sentence)")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")

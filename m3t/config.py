@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # for readers and type checkers; at run time the classes come
     from m3t.corpora.config import SyntheticCorpusConfig
     from m3t.experiment import ExperimentConfig
     from m3t.fitting.config import FitCorpusConfig, FitJob, FittingConfig, FusionConfig
+    from m3t.production.config import BaselinesConfig
     from m3t.sgsa.config import SGSAConfig, SGSAEvaluateConfig, SGSATrainConfig
     from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
     from m3t.smlm.config import GenerateConfig, SMLMConfig, SMLMTrainConfig
@@ -72,6 +73,7 @@ class Params:
     sgsa: SGSAConfig  # skeletal graph self-attention production (SGSA) and its PT baseline
     sgsa_train: SGSATrainConfig
     sgsa_evaluate: SGSAEvaluateConfig
+    baselines: BaselinesConfig  # the copy baselines scored beside the models (retrieval, lexicon)
     corpora: dict[str, CorpusSource]  # corpus name -> where it lives and its adapter's options
 
     def fit_job(self, corpus: str | None = None) -> FitJob:
@@ -112,6 +114,7 @@ SECTIONS: dict[str, str] = {
     "sgsa": "m3t.sgsa.config:SGSAConfig",
     "sgsa_train": "m3t.sgsa.config:SGSATrainConfig",
     "sgsa_evaluate": "m3t.sgsa.config:SGSAEvaluateConfig",
+    "baselines": "m3t.production.config:BaselinesConfig",
     "corpora": "",
 }
 

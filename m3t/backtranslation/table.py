@@ -15,8 +15,12 @@ GT_ROW = "GT motion (upper bound)"
 VARIANT_ORDER = ("production only", "production + translation")
 
 
-def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRecord]) -> str:
-    """Markdown: one row for the ground truth, one per production variant; ``R`` / ``B4`` per language."""
+def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRecord],
+                          baselines: list[RunRecord] = ()) -> str:
+    """Markdown: one row for the ground truth, one per production variant, one per baseline system (the newest
+    finished evaluate-baselines run of each: same clips, same judge); ``R`` / ``B4`` per language."""
+    from m3t.smlm.table import baseline_rows
+
     rows: list[tuple[str, dict[str, float]]] = []
     gt = newest_finished(ground_truth, lambda r: "gt")
     if gt:
@@ -27,6 +31,9 @@ def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRec
         prefix = f"bt/{SLT_DEFINITION}/"
         rows.append((f"SMLM, {name}", {k.removeprefix(prefix): v for k, v in record.metrics.items()
                                        if k.startswith(prefix)}))
+    prefix = f"bt/{SLT_DEFINITION}/"
+    rows += [(f"baseline: {name}", {k.removeprefix(prefix): v for k, v in record.metrics.items()
+                                    if k.startswith(prefix)}) for name, record in baseline_rows(baselines)]
     if not rows:
         return ("no finished evaluate-backtranslation / evaluate-smlm runs with back-translation yet: "
                 "run `dvc repro evaluate-smlm`")

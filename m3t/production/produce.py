@@ -7,7 +7,15 @@ Systems (:data:`SYSTEMS`):
   posed with the body model's default identity. Words the model cannot read are the words whose text tokens
   include ``<unk>`` (pieces its text vocabulary never kept);
 - ``retrieval``: the baseline of :mod:`m3t.production.retrieval` over the training shards: the nearest training
-  clip's motion, unchanged, with its signer's identity. Words of the input its text lacks are listed.
+  clip's motion, unchanged, with its signer's identity. Words of the input its text lacks are listed;
+- ``lexicon``: the baseline of :mod:`m3t.production.lexicon` over the training split's isolated signs: one stored
+  sign per gloss of ``gloss`` when given (e.g. ``"BOOK CHILD READ"``), else per word of the text that names a
+  sign, stitched with ``params.baselines.transition_frames`` interpolated frames, posed with the body model's
+  default identity. Glosses / words without an entry are listed;
+- ``pt`` / ``sgsa``: the skeletal systems of train-sgsa (``models/sgsa/<system>.pt``) decode the text with their
+  own counter (as evaluate-sgsa does), back to metres at the shoulder width of the body model's default identity.
+  They produce a skeleton, not parameters: ``<name>.pose`` holds the skeleton's joints, ``<name>.npz`` the
+  ``points`` (T, J, 3) and the MP4 draws the skeleton. Words their text vocabulary lacks (``<unk>``) are listed.
 
 Outputs in ``out`` under ``name`` (default: a slug of the sentence): ``<name>.pose`` (pose-format's MediaPipe
 Holistic layout, :func:`m3t.render.posefile.export_pose`), ``<name>.npz`` (the parameters by modality, ``identity``
@@ -33,7 +41,8 @@ from m3t.config import Params
 from m3t.production.retrieval import RetrievalIndex, normalise, words
 from m3t.shards.io import read_split
 
-SYSTEMS = ("smlm", "retrieval")
+SYSTEMS = ("smlm", "retrieval", "lexicon", "pt", "sgsa")
+SKELETAL = ("pt", "sgsa")
 DEFAULT_FPS = 25.0  # when the training shards record no rate for the language
 
 
@@ -54,9 +63,13 @@ class Production:
     unhandled_words: tuple[str, ...] = ()
     details: dict = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
+    points: np.ndarray | None = None  # (T, J, 3) metres: a skeletal system's output (params then empty)
+    graph: object = None  # the SkeletonGraph of ``points``
 
     @property
     def frames(self) -> int:
+        if self.points is not None:
+            return len(self.points)
         return next((len(v) for v in self.params.values()), 0)
 
     def summary(self) -> dict:
@@ -126,6 +139,53 @@ def produce_retrieval(text: str, language: str, params: Params, body: BodyModel)
                        "chrf": found.score, "words": len(words(normalise(text), language))})
 
 
+def produce_lexicon(text: str, language: str, params: Params, body: BodyModel, gloss: str | None = None) -> Production:
+    from m3t.production.lexicon import Lexicon
+
+    lexicon = Lexicon(_train_clips(params))
+    if not len(lexicon):
+        raise ProductionError(f"the training shards of {list(params.data.train_corpora)} hold no isolated sign with a "
+                              "gloss: the lexicon baseline has no entry (use --system retrieval or smlm)")
+    made = lexicon.lookup(text, gloss, language, "gloss" if gloss else "words", params.baselines.transition_frames)
+    if not made.frames:
+        raise ProductionError(f"no lexicon entry for any {made.input} of {gloss or text!r} (looked up: "
+                              f"{' '.join(made.missing)}); the lexicon holds {', '.join(sorted(lexicon.entries))}")
+    return Production("lexicon", text, language, made.params, body.default_identity().detach().cpu().numpy(),
+                      _language_fps(_train_clips(params, modalities=()), language), tuple(dict.fromkeys(made.missing)),
+                      {"input": made.input, "signs": " ".join(g for g, _ in made.used),
+                       "entries": " ".join(cid for _, cid in made.used)})
+
+
+def produce_skeletal(text: str, language: str, params: Params, body: BodyModel, system: str) -> Production:
+    import torch
+
+    from m3t.body.skeleton_points import normalise as normalise_points
+    from m3t.sgsa.checkpoint import load_sgsa
+    from m3t.sgsa.data import text_tokens
+    from m3t.sgsa.evaluate import produced_points
+    from m3t.shards.skeletons import graph_points
+
+    path = params.data.sgsa_dir / f"{system}.pt"
+    if not path.exists():
+        raise ProductionError(f"{path} not found; run `dvc repro train-sgsa` (sgsa_train.systems must hold {system!r})")
+    loaded = load_sgsa(path)
+    tokens = text_tokens(text, language)[: loaded.model.cfg.max_text_tokens]
+    vocab = loaded.text_vocab
+    unk = vocab.stoi.get("<unk>")
+    unhandled = tuple(dict.fromkeys(t for t in tokens[1:] if vocab.encode([t])[0] == unk))
+    ids = torch.tensor([vocab.encode(tokens)], dtype=torch.long)
+    loaded.model.eval()
+    with torch.no_grad():
+        frames = loaded.model.generate(ids, torch.ones_like(ids, dtype=torch.bool), loaded.model.cfg.max_frames)[0]
+    identity = body.default_identity().detach().cpu().numpy()
+    rest = {k: v.detach().cpu().numpy() for k, v in body.rest_params(1).items()}
+    _, scale = normalise_points(graph_points(body, rest, identity, loaded.graph), loaded.graph)
+    points = produced_points(frames.cpu().numpy(), loaded.graph, scale)
+    fps = _language_fps(_train_clips(params, modalities=()), language)
+    return Production(system, text, language, {}, identity, fps, unhandled,
+                      {"skeleton": loaded.graph.name, "scale_m": float(scale)}, points=points, graph=loaded.graph)
+
+
 def write_production(result: Production, body: BodyModel, out: str | Path, name: str, video: bool = True,
                      progress: bool = False) -> Production:
     """The files of the module doc, into ``out``; their paths in ``result.files``."""
@@ -133,6 +193,8 @@ def write_production(result: Production, body: BodyModel, out: str | Path, name:
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if result.points is not None:
+        return _write_skeleton(result, out, name, video, progress)
     result.files["pose"] = export_pose(out / f"{name}.pose", body, result.params, result.identity, result.fps)
     with atomic_path(out / f"{name}.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **result.params, identity=result.identity, fps=np.float64(result.fps))
@@ -149,11 +211,30 @@ def write_production(result: Production, body: BodyModel, out: str | Path, name:
     return result
 
 
+def _write_skeleton(result: Production, out: Path, name: str, video: bool, progress: bool) -> Production:
+    from m3t.render.posefile import export_skeleton_pose
+
+    result.files["pose"] = export_skeleton_pose(out / f"{name}.pose", result.points, result.graph, result.fps)
+    with atomic_path(out / f"{name}.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, points=result.points, fps=np.float64(result.fps))
+    result.files["points"] = out / f"{name}.npz"
+    if video:
+        from m3t.render.skeleton_video import render_skeleton_video
+
+        result.files["video"] = render_skeleton_video({result.system: result.points}, result.graph, out / f"{name}.mp4",
+                                                      fps=result.fps, title=f"{result.text} ({result.language})",
+                                                      progress=progress)
+    result.files["summary"] = out / f"{name}.json"
+    write_json(result.files["summary"], result.summary())
+    return result
+
+
 def produce(text: str, language: str, params: Params, system: str = "smlm", out: str | Path | None = None,
             name: str | None = None, video: bool = True, body: BodyModel | None = None,
-            progress: bool = False) -> Production:
+            progress: bool = False, gloss: str | None = None) -> Production:
     """Produce ``text`` in sign language ``language`` with ``system`` from the workspace of ``params``; with
-    ``out``, write the files of the module doc there (under ``name``, default :func:`slug` of the text)."""
+    ``out``, write the files of the module doc there (under ``name``, default :func:`slug` of the text);
+    ``gloss``: the lexicon's input when given (the other systems read the text)."""
     if system not in SYSTEMS:
         raise ProductionError(f"system {system!r} cannot produce from text here; choose one of {', '.join(SYSTEMS)}")
     if not isinstance(text, str) or not text.strip():
@@ -162,7 +243,12 @@ def produce(text: str, language: str, params: Params, system: str = "smlm", out:
         from m3t.body.factory import load_body_model
 
         body = load_body_model(params.body)
-    result = (produce_smlm if system == "smlm" else produce_retrieval)(text, language, params, body)
+    if system == "lexicon":
+        result = produce_lexicon(text, language, params, body, gloss)
+    elif system in SKELETAL:
+        result = produce_skeletal(text, language, params, body, system)
+    else:
+        result = (produce_smlm if system == "smlm" else produce_retrieval)(text, language, params, body)
     if out is not None:
         write_production(result, body, out, name or slug(text), video, progress)
     return result

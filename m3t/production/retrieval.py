@@ -4,6 +4,8 @@ The copy baseline of the SLRTP 2025 challenge's winner (ZechengLi19/CVPRW-SLP-20
 poses of a training clip whenever the test sentence appears word for word in the training set), extended to every
 sentence by a nearest-text rule:
 
+Every training clip with text and motion is a candidate, isolated signs included (their text names the sign).
+
 1. **exact match** of the normalised text (Unicode NFKC, lower case, punctuation removed, whitespace collapsed) in
    the same sign language; several matches: the lowest clip id;
 2. else the **highest sentence chrF** (sacreBLEU's ``CHRF()`` defaults: character 6-grams, beta 2; a character
@@ -53,7 +55,7 @@ class RetrievalIndex:
     def __init__(self, clips: Sequence[FittedClip]):
         self._by_language: dict[str, list[tuple[str, str, FittedClip]]] = {}
         for c in clips:
-            if c.clip.label is None and c.clip.text.strip() and c.num_frames > 0:
+            if c.clip.text.strip() and c.num_frames > 0:  # isolated signs too: a one-sign input retrieves one
                 self._by_language.setdefault(c.clip.language, []).append((normalise(c.clip.text), c.clip.id, c))
         for entries in self._by_language.values():
             entries.sort(key=lambda e: e[1])

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -153,10 +154,51 @@ def _judge(judge_dir: Path, rows: dict[str, tuple[str, np.ndarray]], texts: dict
     return backtranslate(judge_dir, clips, texts, judge.beam_size, judge.length_penalty)
 
 
+@dataclass
+class Posed:
+    """A parameter system scored on the skeleton: ``<system>/<split>/<metric>`` figures, per-clip rows, the
+    judge's rows and the posed points {clip id: (U, J, 3) metres}."""
+
+    summary: dict[str, float]
+    per_clip: list[dict]
+    backtranslation: list[dict]
+    points: dict[str, np.ndarray]
+
+
+def score_posed(system: str, split: str, params: dict[str, dict[str, np.ndarray]], samples: list[Sample],
+                graph: SkeletonGraph, body: BodyModel, judge_dir: Path,
+                judge: BackTranslationConfig | None) -> Posed:
+    """Body-model parameters of any system (``{clip id: {modality: (T, D_m)}}``, e.g. the SMLM's generations or a
+    baseline's) posed into ``graph`` with each reference signer's identity and scored against the reference
+    skeletons like the skeletal systems (DTW-JPE / DTW-PA-JPE per region), the samples of ``params`` only; with
+    ``judge``, its sentence clips back-translated by the skeleton judge (SL-T definition)."""
+    from m3t.body.skeleton_points import normalise
+
+    by_id = {s.clip_id: s for s in samples}
+    scored = [s for s in samples if s.clip_id in params]
+    points = {s.clip_id: graph_points(body, params[s.clip_id], s.clip.fitted.identity, graph) for s in scored}
+    scores = score_point_pairs([PointPair(s.clip_id, s.group, len(points[s.clip_id]),
+                                          regions(points[s.clip_id], graph), regions(s.clip.points, graph))
+                                for s in scored])
+    summary = {f"{system}/{split}/{k}": v for k, v in scores.summary.items()}
+    summary[f"{system}/{split}/{MEAN_DTW}"] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
+    summary[f"{system}/{split}/clips"] = float(len(scored))
+    per_clip = [{"system": system, "split": split, "clip_id": c.clip_id, "group": c.group, "frames": c.frames,
+                 "reference_frames": len(by_id[c.clip_id].clip.points), **c.metrics} for c in scores.per_clip]
+    rows: list[dict] = []
+    sentences = [s for s in scored if s.sentence]
+    if judge is not None and sentences:
+        judged = _judge(judge_dir, {s.clip_id: (s.language, normalise(points[s.clip_id], graph)[0])
+                                    for s in sentences},
+                        {s.clip_id: s.clip.fitted.clip.text for s in sentences}, judge)
+        summary.update({f"{system}/{split}/bt/{k}": v for k, v in judged.summary.items()})
+        rows = [{"system": system, "split": split, **r} for r in judged.per_clip]
+    return Posed(summary, per_clip, rows, points)
+
+
 def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel, data: DataConfig,
                  judge: BackTranslationConfig | None = None, progress: bool = True) -> dict[str, float]:
     """Score every trained system (and the SMLM and the ground truth) on ``cfg.splits``; see the module docstring."""
-    from m3t.body.skeleton_points import normalise
     from m3t.render.posefile import export_skeleton_pose
     from m3t.render.skeleton_video import render_attention_map, render_skeleton_video
     from m3t.runtime import choose_device
@@ -203,27 +245,12 @@ def run_evaluate(model_cfg: SGSAConfig, cfg: SGSAEvaluateConfig, body: BodyModel
                 bt_rows.extend({"system": name, "split": split, **r} for r in judged.per_clip)
         smlm = _smlm_params(data, split, body)
         if smlm is not None:
-            by_id = {s.clip_id: s for s in samples}
-            scored = [s for s in samples if s.clip_id in smlm]
-            points = {s.clip_id: graph_points(body, smlm[s.clip_id], s.clip.fitted.identity, graph) for s in scored}
-            scores = score_point_pairs([PointPair(s.clip_id, s.group, len(points[s.clip_id]),
-                                                  regions(points[s.clip_id], graph), regions(s.clip.points, graph))
-                                        for s in scored])
-            summary.update({f"{SMLM_SYSTEM}/{split}/{k}": v for k, v in scores.summary.items()})
-            summary[f"{SMLM_SYSTEM}/{split}/{MEAN_DTW}"] = 0.5 * (
-                scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
-            summary[f"{SMLM_SYSTEM}/{split}/clips"] = float(len(scored))
-            per_clip.extend({"system": SMLM_SYSTEM, "split": split, "clip_id": c.clip_id, "group": c.group,
-                             "frames": c.frames, "reference_frames": len(by_id[c.clip_id].clip.points), **c.metrics}
-                            for c in scores.per_clip)
-            produced_by[SMLM_SYSTEM] = points
-            smlm_sentences = [s for s in sentences if s.clip_id in smlm]
-            if cfg.backtranslate and smlm_sentences:
-                judged = _judge(data.skeleton_judge_dir, {s.clip_id: (s.language, normalise(points[s.clip_id], graph)[0])
-                                                          for s in smlm_sentences},
-                                {s.clip_id: texts[s.clip_id] for s in smlm_sentences}, judge)
-                summary.update({f"{SMLM_SYSTEM}/{split}/bt/{k}": v for k, v in judged.summary.items()})
-                bt_rows.extend({"system": SMLM_SYSTEM, "split": split, **r} for r in judged.per_clip)
+            posed = score_posed(SMLM_SYSTEM, split, smlm, samples, graph, body, data.skeleton_judge_dir,
+                                judge if cfg.backtranslate else None)
+            summary.update(posed.summary)
+            per_clip.extend(posed.per_clip)
+            bt_rows.extend(posed.backtranslation)
+            produced_by[SMLM_SYSTEM] = posed.points
         if cfg.backtranslate and sentences:
             judged = _judge(data.skeleton_judge_dir, {s.clip_id: (s.language, s.clip.coords) for s in sentences},
                             texts, judge)

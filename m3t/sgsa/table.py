@@ -102,8 +102,21 @@ def _pt_runs(records: list[RunRecord]) -> list[RunRecord]:
     return list(newest_finished([r for r in records if any(k.startswith("pt/") for k in r.metrics)], _seed_of).values())
 
 
-def layers_table(records: list[RunRecord]) -> str:
-    """SGSA Tab. 1: rows ``0 (4 SA)`` (PT) and each ``L`` evaluated at ``N = inf``."""
+BASELINE_NAMES = {"retrieval": "Retrieval baseline (nearest training text's motion)",
+                  "lexicon": "Lexicon baseline (stored sign per gloss, stitched)"}
+
+
+def _baselines(records: list[RunRecord]) -> list[tuple[str, dict[str, float], int]]:
+    """A row per baseline system: its newest finished evaluate-baselines run, scored on the same samples, skeleton
+    and judge as the systems (``<system>/<split>/...``)."""
+    from m3t.smlm.table import baseline_rows
+
+    return [(BASELINE_NAMES.get(name, f"baseline: {name}"), *row_values([record], name))
+            for name, record in baseline_rows(records)]
+
+
+def layers_table(records: list[RunRecord], baselines: list[RunRecord] = ()) -> str:
+    """SGSA Tab. 1: rows ``0 (4 SA)`` (PT) and each ``L`` evaluated at ``N = inf``; then the baselines."""
     rows = []
     pt = _pt_runs(records)
     if pt:
@@ -111,10 +124,11 @@ def layers_table(records: list[RunRecord]) -> str:
     for (layers, adjacency), runs in sorted(_by_variant(records).items()):
         if adjacency == 0 and layers > 0:
             rows.append((str(layers), *row_values(runs, "sgsa")))
+    rows += _baselines(baselines)
     return _render("SGSA Tab. 1: skeletal graph layers L (N = inf)", "L", rows, _finished(records))
 
 
-def adjacency_table(records: list[RunRecord], layers: int | None = None) -> str:
+def adjacency_table(records: list[RunRecord], layers: int | None = None, baselines: list[RunRecord] = ()) -> str:
     """SGSA Tab. 2: rows ``N`` in inf, 1, 2, ... at ``layers`` (default: the L with most evaluated variants)."""
     variants = {k: v for k, v in _by_variant(records).items() if k[0] > 0}
     if layers is None and variants:
@@ -124,11 +138,13 @@ def adjacency_table(records: list[RunRecord], layers: int | None = None) -> str:
         layers = max(counts, key=lambda lay: (counts[lay], lay))
     rows = [("inf" if n == 0 else str(n), *row_values(runs, "sgsa"))
             for (lay, n), runs in sorted(variants.items(), key=lambda kv: (kv[0][1] != 0, kv[0][1])) if lay == layers]
+    rows += _baselines(baselines)
     return _render(f"SGSA Tab. 2: temporal adjacency N (L = {layers})", "N", rows, _finished(records))
 
 
-def cross_table(records: list[RunRecord]) -> str:
-    """SGSA Tab. 3 layout across papers: PT, SGSA (the newest run's variant), the M3T SMLM and the ground truth."""
+def cross_table(records: list[RunRecord], baselines: list[RunRecord] = ()) -> str:
+    """SGSA Tab. 3 layout across papers: PT, SGSA (the newest run's variant), the M3T SMLM, the baselines and the
+    ground truth."""
     finished = _finished(records)
     if not finished:
         return "no finished evaluate-sgsa run yet: run `dvc repro evaluate-sgsa`"
@@ -139,6 +155,7 @@ def cross_table(records: list[RunRecord]) -> str:
     rows = [("Progressive Transformers", *row_values(_pt_runs(finished), "pt")),
             (f"Skeletal Graph Self-Attention (L={layers}, N={n})", *row_values(same, "sgsa")),
             ("M3T SMLM (posed into the skeleton)", *row_values([newest], "smlm")),
+            *_baselines(baselines),
             ("Ground-truth motion (judge upper bound)", *row_values([newest], "ground_truth"))]
     return _render("SGSA Tab. 3 layout, across papers: one corpus, one split, one judge", "approach", rows, finished)
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from m3t.body.protocol import BodyModel
 from m3t.metrics.motion import MotionMetricsConfig
-from m3t.metrics.scorer import MotionPair, MotionScorer
+from m3t.metrics.scorer import MotionPair, MotionScorer, MotionScores
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
 from m3t.smlm.data import Example
@@ -36,6 +36,16 @@ class EvaluationReport:
     per_clip: list[dict] = field(default_factory=list)
     generated: dict[str, GeneratedMotion] = field(default_factory=dict)
     translations: dict[str, str] = field(default_factory=dict)
+
+
+def motion_summary(scores: MotionScores) -> dict[str, float]:
+    """The selection figure (mean of body and hand DTW-JPE; inf without any clip: never selected) and the
+    per-group figures, added to the overall ones of a summary."""
+    if scores.overall:
+        out = {SELECTION_METRIC: 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])}
+    else:  # no evaluation clip at all (an empty generation is scored as the rest pose): never selected
+        out = {SELECTION_METRIC: float("inf")}
+    return {**out, **scores.group_summary}
 
 
 def group_name(example: Example, reference: FittedClip) -> str:
@@ -96,21 +106,15 @@ class SMLMEvaluator:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
         steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
         # EOS at the first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted
-        scores = self.scorer.score([
-            MotionPair(e.clip_id, group_name(e, self.references[e.clip_id]),
-                       self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {},
-                       self.references[e.clip_id].identity) for e in self.examples])
+        scores = self.score_motion({e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {}
+                                    for e in self.examples})
         rows = [{"clip_id": c.clip_id, "group": c.group, "steps": steps[c.clip_id],
                  "stopped": float(generated[c.clip_id].stopped), **c.metrics} for c in scores.per_clip]
         summary = dict(scores.overall)
         summary["stopped_rate"] = float(np.mean([r["stopped"] for r in rows])) if rows else 0.0
         summary["empty_rate"] = scores.empty_rate
         summary["mean_steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
-        if scores.overall:
-            summary[SELECTION_METRIC] = 0.5 * (scores.overall["dtw_jpe_body_m"] + scores.overall["dtw_jpe_hand_m"])
-        else:  # no evaluation clip at all (an empty generation is scored as the rest pose): never selected
-            summary[SELECTION_METRIC] = float("inf")
-        summary.update(scores.group_summary)
+        summary.update(motion_summary(scores))
         report = EvaluationReport(summary, rows, generated)
         if translations is not None:
             lost = [e.clip_id for e in self.examples if e.clip_id not in translations]
@@ -121,6 +125,16 @@ class SMLMEvaluator:
                 [translations[e.clip_id] for e in self.examples], [e.text for e in self.examples],
                 [e.language for e in self.examples]))
         return report
+
+    def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
+        """Any system's parameters ``{clip id: {modality: (T, D_m)}}`` of every evaluation clip (``{}``: no motion,
+        scored as the rest pose) against the references, each side posed with the reference's identity, per
+        ``<corpus>/<language>`` group: how the SMLM's generations are scored, and the baselines beside them."""
+        lost = [e.clip_id for e in self.examples if e.clip_id not in motion]
+        if lost:
+            raise KeyError(f"no motion for clips {lost[:5]} (of {len(lost)})")
+        return self.scorer.score([MotionPair(e.clip_id, group_name(e, self.references[e.clip_id]), motion[e.clip_id],
+                                             self.references[e.clip_id].identity) for e in self.examples])
 
     def __call__(self, model: SignMotionLM) -> dict[str, float]:
         return self.evaluate(model).summary

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 
 import numpy as np
 
@@ -82,14 +83,21 @@ def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, Gener
     """The generated motion of every sentence clip (decoded by the frozen tokenizers) through the frozen
     back-translation judge of its language (definition "slt"); an empty generation is the empty sentence.
     Isolated signs are left to the recognition probe; None when the split has no sentence clip."""
+    return backtranslate_motion(evaluator, lambda cid: evaluator.motion_params(generated[cid])
+                                if len(generated[cid].tokens["body"]) else {}, data, body, judge)
+
+
+def backtranslate_motion(evaluator: SMLMEvaluator, motion_of: Callable[[str], dict[str, np.ndarray]],
+                         data: DataConfig, body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
+    """Any system's parameters of every sentence clip of the evaluation (``motion_of(clip id)``; ``{}``: no motion,
+    the empty sentence) through the frozen judge of its language, as :func:`backtranslate_generated`."""
     empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
     clips, texts = {}, {}
     for e in evaluator.examples:
         ref = evaluator.references[e.clip_id]
         if skip_reason(ref.clip, ref.num_frames) is not None:
             continue
-        g = generated[e.clip_id]
-        clips[e.clip_id] = (e.language, evaluator.motion_params(g) if len(g.tokens["body"]) else empty)
+        clips[e.clip_id] = (e.language, motion_of(e.clip_id) or empty)
         texts[e.clip_id] = ref.clip.text
     if not clips:
         return None

@@ -30,7 +30,7 @@ INDEX = RetrievalIndex([
     clip("c4", "im süden scheint die sonne"),
     clip("c5", "", frames=3),  # no text: never retrieved
     clip("c6", "im norden regnet es", frames=0),  # no motion: never retrieved
-    clip("c7", "regen", label=12),  # an isolated sign: never retrieved
+    clip("c7", "regen", label=12),  # an isolated sign: retrieved by its own text
     clip("c8", "the weather is nice", language="ASL"),
 ])
 
@@ -53,6 +53,7 @@ def test_nearest_by_chrf_and_missing_words():
                                                                ["im norden regnet es"]).score)
     assert found.missing_words == ("morgen",)
     assert INDEX.nearest("sonne im süden", "DGS").clip.clip.id == "c4"
+    assert INDEX.nearest("Regen!", "DGS").clip.clip.id == "c7"  # an isolated sign's text names it exactly
 
 
 def test_no_shared_ngram_retrieves_the_lowest_id():
