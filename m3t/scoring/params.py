@@ -13,7 +13,9 @@ differ from the body model's, or when it has no frames on the reference side.
 With a judge (the back-translation checkpoints), every sentence clip's prediction is back-translated and scored
 against the reference's text under the text definitions (``slt``, ``soke``, ``slrtp``), keys
 ``<definition>/<language>/<metric>`` as evaluate-smlm writes them under ``bt/``; isolated signs and clips
-without text are left out with that reason, as the pipeline leaves them out.
+without text are left out with that reason, as the pipeline leaves them out. A released SignSparK_BT model
+directory as the judge (:mod:`m3t.backtranslation.signspark`) back-translates the clips of its one language from
+their 240-d SMPL-X input, under the same definitions and keys.
 """
 from __future__ import annotations
 
@@ -103,12 +105,14 @@ def _check_layout(side: Side, body: BodyModel, name: str) -> None:
 def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: Sequence[str] | None = None,
                            progress: Callable[[Iterable], Iterable] | None = None,
                            judge: Path | None = None, beam_size: int = 1, length_penalty: float = 1.0,
-                           tokenizers_dir: Path | None = None) -> ScoreReport:
+                           tokenizers_dir: Path | None = None, judge_language: str | None = None) -> ScoreReport:
     """Score the clips of shard ``pred`` against those of shard ``ref`` on ``body`` (see the module doc); a token
     shard on either side is decoded by the tokenizers of ``tokenizers_dir``. With a
     ``judge`` folder (back-translation checkpoints, ``models/backtranslation``), the predictions are also
     back-translated (``beam_size``, ``length_penalty``: the decoding of params.yaml ``backtranslation``) and the
-    sentences scored against the reference shard's texts under the text definitions."""
+    sentences scored against the reference shard's texts under the text definitions. A SignSparK_BT model
+    directory as ``judge`` back-translates with that released model (its own decoding; ``judge_language``: the
+    sign language of its clips when its dataset does not say it, :mod:`m3t.backtranslation.signspark`)."""
     if definitions is None:  # every definition that applies: soke_exact needs SMPL-FX, text ones a judge
         definitions = [d for d in PARAMETER_DEFINITIONS if (d != "soke_exact" or body.name == "smplfx")
                        and (d in MOTION_DEFINITIONS or judge is not None)]
@@ -146,7 +150,7 @@ def score_parameter_shards(pred: Path, ref: Path, body: BodyModel, definitions: 
                                   "folder of back-translation checkpoints (`dvc repro train-backtranslation` writes "
                                   "models/backtranslation)")
         _backtranslated(report, pairs, {c: v[0] for c, v in references.clips.items()}, judge, text, beam_size,
-                        length_penalty)
+                        length_penalty, body, judge_language)
     report.notes.append(f"body model: {body.name}; both sides posed with the reference's identity; metres")
     return report
 
@@ -171,31 +175,18 @@ def score_motion_pairs(report: ScoreReport, pairs: Sequence[MotionPair], body: B
 
 
 def _backtranslated(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, judge: Path,
-                    definitions: Sequence[str], beam_size: int, length_penalty: float) -> None:
-    """Back-translate each pair's prediction with the judge of its clip's language; score the sentences per
-    language against the reference texts (as the judge's text rule writes them). Keys
-    ``<definition>/<language>/<metric>``, as the back-translation stages write them."""
-    from m3t.backtranslation.data import skip_reason
-    from m3t.backtranslation.pipeline import backtranslate, load_models
+                    definitions: Sequence[str], beam_size: int, length_penalty: float, body: BodyModel,
+                    judge_language: str | None = None) -> None:
+    """Back-translate each pair's prediction with the judge of its clip's language (this project's judges, or a
+    SignSparK_BT model directory, recognised by its config); score the sentences per language against the
+    reference texts (as the judge's text rule writes them). Keys ``<definition>/<language>/<metric>``, as the
+    back-translation stages write them."""
+    from m3t.backtranslation.signspark import is_signspark_judge
 
-    try:
-        languages = set(load_models(judge))
-    except FileNotFoundError as exc:
-        raise ScoreInputError(str(exc)) from exc
-    inputs, texts = {}, {}
-    for pair in pairs:
-        clip = clips[pair.clip_id]
-        if clip.language not in languages:
-            reason = f"no judge for language {clip.language!r} in {judge} (judges: {sorted(languages)})"
-        elif skip_reason(clip, 1) is not None:  # isolated signs and clips without text, as the pipeline skips
-            reason = f"not back-translated: {skip_reason(clip, 1)}"
-        else:
-            inputs[pair.clip_id], texts[pair.clip_id] = (clip.language, pair.prediction), clip.text
-            continue
-        report.unscored.append({"clip": pair.clip_id, "definition": "back-translation", "reason": reason})
-    if not inputs:
-        return
-    rows = backtranslate(judge, inputs, texts, beam_size, length_penalty).per_clip
+    if is_signspark_judge(judge):
+        rows = _signspark_rows(report, pairs, clips, judge, body, judge_language)
+    else:
+        rows = _m3t_rows(report, pairs, clips, judge, beam_size, length_penalty)
     for language in dict.fromkeys(r["language"] for r in rows):
         mine = [r for r in rows if r["language"] == language]
         for name in definitions:
@@ -207,3 +198,75 @@ def _backtranslated(report: ScoreReport, pairs: Sequence[MotionPair], clips: dic
             report.clips_scored[name] = report.clips_scored.get(name, 0) + len(mine)
     report.sentences += [{"clip": r["clip_id"], "language": r["language"], "hypothesis": r["hypothesis"],
                           "reference": r["reference"]} for r in rows]
+
+
+def _judged(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, languages: set[str],
+            judges: str) -> list[MotionPair]:
+    """The pairs a judge of ``languages`` back-translates; the others go to the report's unscored list with their
+    reason (isolated signs and clips without text, as the pipeline skips them)."""
+    from m3t.backtranslation.data import skip_reason
+
+    kept = []
+    for pair in pairs:
+        clip = clips[pair.clip_id]
+        if clip.language not in languages:
+            reason = f"no judge for language {clip.language!r} in {judges}"
+        elif skip_reason(clip, 1) is not None:
+            reason = f"not back-translated: {skip_reason(clip, 1)}"
+        else:
+            kept.append(pair)
+            continue
+        report.unscored.append({"clip": pair.clip_id, "definition": "back-translation", "reason": reason})
+    return kept
+
+
+def _m3t_rows(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, judge: Path, beam_size: int,
+              length_penalty: float) -> list[dict]:
+    """Back-translations by this project's judges (``<language>.pt`` of ``judge``)."""
+    from m3t.backtranslation.pipeline import backtranslate, load_models
+
+    try:
+        languages = set(load_models(judge))
+    except FileNotFoundError as exc:
+        raise ScoreInputError(f"{exc} (a SignSparK_BT model directory holds config.yaml, best.ckpt, txt.vocab and "
+                              "gls.vocab)") from exc
+    kept = _judged(report, pairs, clips, languages, f"{judge} (judges: {sorted(languages)})")
+    if not kept:
+        return []
+    inputs = {p.clip_id: (clips[p.clip_id].language, p.prediction) for p in kept}
+    return backtranslate(judge, inputs, {p.clip_id: clips[p.clip_id].text for p in kept}, beam_size,
+                         length_penalty).per_clip
+
+
+def _signspark_rows(report: ScoreReport, pairs: Sequence[MotionPair], clips: dict, judge: Path, body: BodyModel,
+                    language: str | None) -> list[dict]:
+    """Back-translations by a released SignSparK_BT model: its 240-d SMPL-X input from the predictions, its own
+    decoding and reference text rule. A body model without the SMPL-X joints leaves every clip unscored with
+    :func:`~m3t.backtranslation.smplx240.smplx240_index`'s reason."""
+    from m3t.backtranslation.signspark import (
+        SignSparkCheckpointError,
+        load_signspark,
+        translate,
+    )
+    from m3t.backtranslation.smplx240 import smplx240_index, to_smplx240
+
+    try:
+        loaded = load_signspark(judge, language)
+    except (FileNotFoundError, SignSparkCheckpointError) as exc:
+        raise ScoreInputError(str(exc)) from exc
+    kept = _judged(report, pairs, clips, {loaded.language}, f"{judge} (the SignSparK_BT judge of "
+                   f"{loaded.language!r}, trained on {loaded.dataset})")
+    try:
+        smplx240_index(body.layout, body.name)
+    except ValueError as exc:
+        report.unscored += [{"clip": p.clip_id, "definition": "back-translation", "reason": str(exc)} for p in kept]
+        return []
+    if not kept:
+        return []
+    dec = loaded.decoding
+    report.notes.append(f"judge: SignSparK_BT {loaded.checkpoint} ({loaded.language}, {loaded.dataset}); its own "
+                        f"decoding (beam {dec.beam_size}, alpha {dec.alpha:g}, at most {dec.max_output_length} "
+                        "tokens; params.yaml's beam_size and length_penalty not used) and reference text rule")
+    hypotheses = translate(loaded, [to_smplx240(p.prediction, body.layout, body.name) for p in kept])
+    return [{"clip_id": p.clip_id, "language": loaded.language, "hypothesis": h,
+             "reference": loaded.text.reference(clips[p.clip_id].text)} for p, h in zip(kept, hypotheses)]
