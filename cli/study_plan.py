@@ -11,7 +11,7 @@ Variants, per seed ``s``: ``tokenizer-<q>-b<batch>-s<s>`` (M3T Tab. 3), ``smlm-{
 translation-added}-s<s>`` (the objective's ablation at equal epochs and at equal production updates),
 ``slr-s<s>`` (the probe with and without the face), ``sgsa-ninf-s<s>`` (SGSA at N = inf) and ``sgsa-n<N>-s<s>``
 (PT and SGSA at the configured N, judged beside the same seed's SMLM); ``shared`` first (the shared tokenizers and
-the back-translation judges).
+the back-translation judges, and the baselines, which read no trained production model).
 """
 from __future__ import annotations
 
@@ -52,7 +52,8 @@ def plan(base: Params, seeds: Sequence[int], where: str = "params.yaml") -> list
     check(base, where, seeds)
     shared_seed = base.tokenizer_train.seed
     shared = {**SHARED, "tokenizer_train.seed": shared_seed}
-    out = [Variant("shared", shared, ("evaluate-backtranslation", "train-backtranslation-skeleton"))]
+    out = [Variant("shared", shared, ("evaluate-backtranslation", "train-backtranslation-skeleton",
+                                      "evaluate-baselines"))]
     for seed in seeds:
         out += [Variant(f"tokenizer-{q}-b{b}-s{seed}", {"tokenizer.quantizer": q, "tokenizer_train.batch_size": b,
                                                          "tokenizer_train.seed": seed}, ("train-tokenizers",))

@@ -102,6 +102,7 @@ MODULE_MARKS: dict[str, tuple[str, ...]] = {
     "test_dashboard": ("slow", "e2e"),
     "test_score_pipeline": ("slow", "e2e"),  # scores the tiny pipeline's outputs
     "test_produce_pipeline": ("slow", "e2e"),  # produces from the tiny pipeline's checkpoints
+    "test_baselines_pipeline": ("slow", "e2e"),  # evaluate-baselines on the tiny pipeline
     "test_translate_pipeline": ("slow", "e2e"),  # translates with the tiny pipeline's checkpoints
     "test_synthetic": ("slow",),       # generates whole corpora
     "test_synthetic_design": ("slow",),  # generates the study corpus

@@ -150,6 +150,15 @@ def _sgsa_runs(records: list[RunRecord]) -> list[RunRecord]:
     return own
 
 
+def _sgsa_setting(records: list[RunRecord]) -> dict[str, RunRecord]:
+    """Seed -> the evaluate-sgsa run of the setting the claims judge: a finite N (PT and the SMLM beside SGSA)
+    where one ran, else the newest run's."""
+    runs = _sgsa_runs(records)
+    finite = [r for r in runs if r.params.get("sgsa.temporal_adjacency") not in ("0", None)]
+    variant = (finite or runs)[0].tags.get("variant")
+    return newest_finished([r for r in runs if r.tags.get("variant") == variant], _seed)
+
+
 def sgsa_systems(a_system: str, b_system: str, file: str, column: str) -> Callable[[list[RunRecord]], Sample]:
     """Two systems of the same evaluate-sgsa runs (``pt``, ``sgsa``, ``smlm``) on the test split, per seed;
     ``column`` of ``file`` (``per_clip.csv`` or ``backtranslation.csv``). The runs are those of one setting: the
@@ -157,11 +166,7 @@ def sgsa_systems(a_system: str, b_system: str, file: str, column: str) -> Callab
     order the runs finished in."""
 
     def collect(records: list[RunRecord]) -> Sample:
-        runs = _sgsa_runs(records)
-        # the configured setting: a finite N (PT and the SMLM beside SGSA) where one ran, else the newest run's
-        finite = [r for r in runs if r.params.get("sgsa.temporal_adjacency") not in ("0", None)]
-        variant = (finite or runs)[0].tags.get("variant")
-        by_seed = newest_finished([r for r in runs if r.tags.get("variant") == variant], _seed)
+        by_seed = _sgsa_setting(records)
         seeds = sorted(by_seed)
         pairs = []
         for s in seeds:
@@ -215,5 +220,37 @@ def tokenizer_runs(metric: str, a: tuple[str, str], b: tuple[str, str]) -> Calla
         a_runs, b_runs = [runs[(*a, s)] for s in seeds], [runs[(*b, s)] for s in seeds]
         return Sample(np.array([[r.metrics[metric] for r in a_runs]]), np.array([[r.metrics[metric] for r in b_runs]]),
                       seeds, [r.run_id for r in a_runs], [r.run_id for r in b_runs], unit="seed")
+
+    return collect
+
+
+def versus_baseline(baseline: str, model: str, column: str) -> Callable[[list[RunRecord]], Sample]:
+    """A: a baseline of evaluate-baselines (``retrieval`` / ``lexicon``: deterministic, its newest run on the same
+    data for every seed); B: ``model`` per seed, ``smlm`` (evaluate-smlm with the objective, body-model path) or a
+    system of evaluate-sgsa (``sgsa`` / ``pt``: the skeleton path, test split). ``column`` of ``per_clip.csv``."""
+
+    def collect(records: list[RunRecord]) -> Sample:
+        if model == "smlm":
+            generated = [r for r in _stage(records, "evaluate-smlm") if _smlm_variant(r) == "shared"]
+            by_seed = newest_finished(generated, _seed)
+            model_values = {s: _values(_rows(r, "per_clip.csv"), column) for s, r in by_seed.items()}
+            path = "body_model"
+        else:
+            by_seed = _sgsa_setting(records)
+            model_values = {s: _values(_rows(r, "per_clip.csv"), column, system=model, split="test")
+                            for s, r in by_seed.items()}
+            path = "skeleton"
+        if not by_seed:
+            raise MissingRuns(f"needs {'evaluate-smlm' if model == 'smlm' else 'evaluate-sgsa'} runs: `dvc repro`")
+        version = next(iter(by_seed.values())).tags.get("data_version")
+        runs = newest_finished([r for r in _stage(records, "evaluate-baselines", version)
+                                if r.tags.get("variant") == baseline], lambda r: 0)
+        if not runs:
+            raise MissingRuns(f"needs an evaluate-baselines run of {baseline!r} on the same data: "
+                              "`dvc repro evaluate-baselines`")
+        base = _values(_rows(runs[0], "per_clip.csv"), column, system=baseline, path=path, split="test")
+        seeds = sorted(by_seed)
+        a, b = _aligned([(base, model_values[s]) for s in seeds])
+        return Sample(a, b, seeds, [runs[0].run_id] * len(seeds), [by_seed[s].run_id for s in seeds])
 
     return collect

@@ -12,13 +12,18 @@ Systems (params.yaml ``baselines.systems``):
 
 Two scorings, each the models' own:
 
-- **body-model path** (M3T Tab. 1-2): the clips of the SMLM's evaluation (``smlm_generate.split``, the same
-  examples evaluate-smlm scores), through the same :class:`m3t.smlm.evaluate.SMLMEvaluator` (DTW-JPE /
-  DTW-PA-JPE per region and ``<corpus>/<language>`` group, face DTW-VPE) and the same frozen back-translation judge
-  (``bt/slt/...``);
+- **body-model path** (M3T Tab. 1-2): the clips of ``smlm_generate.split`` with text and frames (those
+  evaluate-smlm scores whenever the SMLM's vocabulary has a prompt for every language; its ``clips_unscorable``
+  says when not), through the SMLM evaluation's scoring (:func:`m3t.smlm.evaluate.score_against`: DTW-JPE /
+  DTW-PA-JPE per region and ``<corpus>/<language>`` group, face DTW-VPE, ``smlm_generate.motion_metric``) and the
+  same frozen back-translation judge (``bt/slt/...``);
 - **skeleton path** (SGSA Tab. 1-3 and the cross-paper table): the samples evaluate-sgsa scores on
-  ``sgsa_evaluate.splits``, posed into the same skeleton with each reference signer's identity, as the SMLM's
-  motion is (:func:`m3t.sgsa.pipeline.score_posed`), and back-translated by the skeleton judge.
+  ``sgsa_evaluate.splits`` (clips with text and frames) on train-sgsa's skeleton graph, posed with each reference
+  signer's identity as the SMLM's motion is (:func:`m3t.sgsa.pipeline.score_posed`), and back-translated by the
+  skeleton judge.
+
+No trained production model is read: the baselines depend on the data and the judges alone, so retraining a model
+never reruns them, and one run serves every seed of the claims study.
 
 A clip a baseline cannot serve (no training text in its language, no lexicon entry for any of its glosses) gets no
 motion: scored as the rest pose (as an empty generation is) and counted (``no_motion_rate``); glosses / words
@@ -28,7 +33,9 @@ Writes ``<metrics>/baselines/``: ``metrics.json`` (``<system>/<metric>`` on the 
 evaluate-smlm's metric names; ``<system>/skeleton/<split>/<metric>`` on the skeleton path, with evaluate-sgsa's),
 ``per_clip.csv``, ``produced.csv`` (what each clip got: retrieved clip, match, chrF, lexicon entries used,
 missing words), ``backtranslation.csv``; and each system's motion for the body-model clips as a parameter shard
-``<generated_dir>/baselines/<corpora>/<system>.parquet``, so ``m3t score`` reproduces the body-model figures from the files.
+``<generated_dir>/baselines/<corpora>/<system>.parquet``, so ``m3t score`` reproduces the body-model figures from
+the files (a clip without motion is not in the shard, which holds no empty clip: ``m3t score`` lists it as
+unpaired, the stage scores it as the rest pose).
 Each system is one MLflow run of stage ``evaluate-baselines`` (tag ``variant`` = the system), with the body-model
 metrics under evaluate-smlm's names and the skeleton ones under evaluate-sgsa's (``<system>/<split>/...``): the
 paper tables read them beside the models.
@@ -139,19 +146,22 @@ def motion_dir(data: DataConfig) -> Path:
 
 def _body_model_path(cfg: BaselinesConfig, generate: GenerateConfig, data: DataConfig, body: BodyModel,
                      judge: BackTranslationConfig, report: BaselineReport, train: list, lexicon_clips: list) -> None:
-    from m3t.shards.io import write_shard
-    from m3t.smlm.evaluate import motion_summary
+    from m3t.metrics.motion import MotionMetricsConfig
+    from m3t.metrics.scorer import MotionScorer
+    from m3t.shards.io import read_production_split, write_shard
+    from m3t.smlm.evaluate import motion_summary, score_against
     from m3t.smlm.evaluate_run import backtranslate_motion
-    from m3t.smlm.generate_run import evaluator_for
 
-    evaluator = evaluator_for(generate, data, body).evaluator
-    clips = [evaluator.references[e.clip_id] for e in evaluator.examples]
+    clips = [c for c in read_production_split(data, generate.split) if c.clip.text.strip() and c.num_frames > 0]
+    scorer = MotionScorer(body, MotionMetricsConfig(mode=generate.motion_metric))
+    for ref in clips:  # posed once for every system, as the SMLM evaluator poses its references
+        scorer.reference(ref.clip.id, ref.params, ref.identity)
     for system, made in produce_baselines(clips, train, lexicon_clips, cfg).items():
-        scores = evaluator.score_motion(made.motion)
+        scores = score_against(scorer, clips, made.motion)
         metrics = {**scores.overall, "empty_rate": scores.empty_rate, **motion_summary(scores),
                    "clips_scored": float(len(clips)), **made.statistics()}
         if generate.backtranslate:
-            judged = backtranslate_motion(evaluator, lambda cid, m=made: m.motion[cid], data, body, judge)
+            judged = backtranslate_motion(clips, lambda cid, m=made: m.motion[cid], data, body, judge)
             metrics["bt/clips"] = float(0 if judged is None else len(judged.per_clip))
             if judged is not None:
                 metrics.update({f"bt/{k}": v for k, v in judged.summary.items()})
@@ -161,9 +171,9 @@ def _body_model_path(cfg: BaselinesConfig, generate: GenerateConfig, data: DataC
         report.per_clip += [{"system": system, "path": "body_model", "split": generate.split, "clip_id": c.clip_id,
                              "group": c.group, **c.metrics} for c in scores.per_clip]
         report.produced += [{"path": "body_model", "split": generate.split, **r} for r in made.rows]
-        empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
-        stored = [replace(ref, key=f"{system}:{ref.key}", params=made.motion[ref.clip.id] or empty, metrics={})
-                  for ref in clips]
+        # a shard holds no empty clip: a clip without motion is left out (m3t score lists it as unpaired)
+        stored = [replace(ref, key=f"{system}:{ref.key}", params=made.motion[ref.clip.id], metrics={})
+                  for ref in clips if made.motion[ref.clip.id]]
         motion_dir(data).mkdir(parents=True, exist_ok=True)
         write_shard(motion_dir(data) / f"{system}.parquet", stored, body.layout)
 
@@ -171,19 +181,23 @@ def _body_model_path(cfg: BaselinesConfig, generate: GenerateConfig, data: DataC
 def _skeleton_path(cfg: BaselinesConfig, sgsa_cfg: SGSAConfig, splits: Sequence[str], data: DataConfig,
                    body: BodyModel, judge: BackTranslationConfig | None, report: BaselineReport, train: list,
                    lexicon_clips: list, progress: bool) -> None:
-    from m3t.sgsa.data import make_samples
-    from m3t.sgsa.pipeline import load_systems, score_posed
+    from m3t.body.skeleton import graph_for
+    from m3t.sgsa.data import make_samples, vocabularies
+    from m3t.sgsa.pipeline import score_posed
     from m3t.shards.io import read_production_split
     from m3t.shards.skeletons import skeleton_clips
 
-    first = next(iter(load_systems(data).values()))
+    graph = graph_for(sgsa_cfg.skeleton, sgsa_cfg.face_points)  # train-sgsa's graph
     rest = {k: v.detach().cpu().numpy() for k, v in body.rest_params(1).items()}
     for split in splits:
-        clips = skeleton_clips(body, read_production_split(data, split), first.graph, progress, f"skeletons: {split}")
-        samples = make_samples(clips, first.text_vocab, first.gloss_vocab, sgsa_cfg, training=False).samples
+        clips = skeleton_clips(body, read_production_split(data, split), graph, progress, f"skeletons: {split}")
+        # evaluate-sgsa's samples (a clip is left out for no text or no frames, whatever the vocabulary); the
+        # baselines read no text ids, so the split's own vocabulary serves
+        text_vocab, gloss_vocab = vocabularies(clips, sgsa_cfg)
+        samples = make_samples(clips, text_vocab, gloss_vocab, sgsa_cfg, training=False).samples
         for system, made in produce_baselines([s.clip.fitted for s in samples], train, lexicon_clips, cfg).items():
             motion = {cid: params or rest for cid, params in made.motion.items()}  # no motion: the rest pose
-            posed = score_posed(system, split, motion, samples, first.graph, body, data.skeleton_judge_dir, judge)
+            posed = score_posed(system, split, motion, samples, graph, body, data.skeleton_judge_dir, judge)
             report.add(system, posed.summary,
                        {f"{system}/skeleton/{k.split('/', 1)[1]}": v for k, v in posed.summary.items()})
             report.per_clip += [{**r, "path": "skeleton"} for r in posed.per_clip]

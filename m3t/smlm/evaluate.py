@@ -52,6 +52,18 @@ def group_name(example: Example, reference: FittedClip) -> str:
     return f"{reference.clip.corpus}/{example.language}"
 
 
+def score_against(scorer: MotionScorer, references: Sequence[FittedClip],
+                  motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
+    """Parameters ``{clip id: {modality: (T, D_m)}}`` (``{}``: no motion, scored as the rest pose) of every
+    reference clip, against it, both posed with the reference's identity, per ``<corpus>/<language>`` group (the
+    SMLM evaluation's groups): how the SMLM's generations are scored, and any other system beside them."""
+    lost = [r.clip.id for r in references if r.clip.id not in motion]
+    if lost:
+        raise KeyError(f"no motion for clips {lost[:5]} (of {len(lost)})")
+    return scorer.score([MotionPair(r.clip.id, f"{r.clip.corpus}/{r.clip.language}", motion[r.clip.id], r.identity)
+                         for r in references])
+
+
 class SMLMEvaluator:
     """Holds the evaluation clips, their reference metric points and the frozen tokenizers."""
 
@@ -127,14 +139,8 @@ class SMLMEvaluator:
         return report
 
     def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
-        """Any system's parameters ``{clip id: {modality: (T, D_m)}}`` of every evaluation clip (``{}``: no motion,
-        scored as the rest pose) against the references, each side posed with the reference's identity, per
-        ``<corpus>/<language>`` group: how the SMLM's generations are scored, and the baselines beside them."""
-        lost = [e.clip_id for e in self.examples if e.clip_id not in motion]
-        if lost:
-            raise KeyError(f"no motion for clips {lost[:5]} (of {len(lost)})")
-        return self.scorer.score([MotionPair(e.clip_id, group_name(e, self.references[e.clip_id]), motion[e.clip_id],
-                                             self.references[e.clip_id].identity) for e in self.examples])
+        """Parameters of every evaluation clip against its reference (:func:`score_against`)."""
+        return score_against(self.scorer, [self.references[e.clip_id] for e in self.examples], motion)
 
     def __call__(self, model: SignMotionLM) -> dict[str, float]:
         return self.evaluate(model).summary

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from m3t.experiment import ExperimentConfig, start_run
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.reporting import frame_csv
 from m3t.shards.folders import DataConfig
+from m3t.shards.schema import FittedClip
 from m3t.shards.tokens import (
     read_token_shard,
 )
@@ -83,22 +84,22 @@ def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, Gener
     """The generated motion of every sentence clip (decoded by the frozen tokenizers) through the frozen
     back-translation judge of its language (definition "slt"); an empty generation is the empty sentence.
     Isolated signs are left to the recognition probe; None when the split has no sentence clip."""
-    return backtranslate_motion(evaluator, lambda cid: evaluator.motion_params(generated[cid])
+    return backtranslate_motion([evaluator.references[e.clip_id] for e in evaluator.examples],
+                                lambda cid: evaluator.motion_params(generated[cid])
                                 if len(generated[cid].tokens["body"]) else {}, data, body, judge)
 
 
-def backtranslate_motion(evaluator: SMLMEvaluator, motion_of: Callable[[str], dict[str, np.ndarray]],
+def backtranslate_motion(references: Sequence[FittedClip], motion_of: Callable[[str], dict[str, np.ndarray]],
                          data: DataConfig, body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
-    """Any system's parameters of every sentence clip of the evaluation (``motion_of(clip id)``; ``{}``: no motion,
+    """Any system's parameters of every sentence clip of ``references`` (``motion_of(clip id)``; ``{}``: no motion,
     the empty sentence) through the frozen judge of its language, as :func:`backtranslate_generated`."""
     empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
     clips, texts = {}, {}
-    for e in evaluator.examples:
-        ref = evaluator.references[e.clip_id]
+    for ref in references:
         if skip_reason(ref.clip, ref.num_frames) is not None:
             continue
-        clips[e.clip_id] = (e.language, motion_of(e.clip_id) or empty)
-        texts[e.clip_id] = ref.clip.text
+        clips[ref.clip.id] = (ref.clip.language, motion_of(ref.clip.id) or empty)
+        texts[ref.clip.id] = ref.clip.text
     if not clips:
         return None
     return backtranslate(data.backtranslation_dir, clips, texts, judge.beam_size, judge.length_penalty)
