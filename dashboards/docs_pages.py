@@ -182,6 +182,63 @@ def sgsa_section(root: Path) -> str:
     return _section(root, "metrics/sgsa/metrics.json", "evaluate-sgsa", head, body)
 
 
+def baselines_section(root: Path) -> str:
+    head = ("## Baselines beside the models (`evaluate-baselines`)\n\nThe copy baselines of the field, scored "
+            "exactly as the models: `retrieval` (the motion of the training clip whose text is nearest, unchanged) "
+            "and `lexicon` (one stored isolated sign per annotated gloss, stitched: an oracle text-to-gloss step). "
+            "Body-model path: the test clips, the SMLM evaluation's scorer and judge (raw DTW cost in metres); "
+            "skeleton path: evaluate-sgsa's test samples and skeleton judge (DTW-JPE mean of body and hands, "
+            "mm). Back-translation: mean over languages (SL-T definition). [How they are built](../produce.md).\n")
+
+    def body(b: dict) -> str:
+        smlm = _load(root, "metrics/smlm/metrics.json") or {}
+        sgsa = _load(root, "metrics/sgsa/metrics.json") or {}
+        rows = [("M3T SMLM", smlm, "")] + [(name, {k[len(key) + 1:]: v for k, v in b.items()
+                                                  if k.startswith(key + "/")}, key) for name, key in
+                                           (("retrieval baseline", "retrieval"), ("lexicon baseline", "lexicon"))]
+        motion = page_table(
+            ["system", "DTW-JPE body (m)", "DTW-JPE hands (m)", "DTW-PA-JPE body (m)", "DTW-PA-JPE hands (m)",
+             "face DTW-VPE (m)", "back-translation ROUGE-L", "clips"],
+            [[name, num(m.get("dtw_jpe_body_m")), num(m.get("dtw_jpe_hand_m")), num(m.get("dtw_pa_jpe_body_m")),
+              num(m.get("dtw_pa_jpe_hand_m")), num(m.get("dtw_vpe_face_m")), num(m.get("bt/slt_rouge_l")),
+              num(m.get("clips_scored"))] for name, m, _ in rows if m])
+        skeleton = []
+        for name, system in (("Progressive Transformers", "pt"), ("SGSA", "sgsa"), ("M3T SMLM", "smlm"),
+                             ("retrieval baseline", "retrieval"), ("lexicon baseline", "lexicon"),
+                             ("ground-truth motion", "ground_truth")):
+            source, prefix = (b, f"{system}/skeleton/test/") if system in ("retrieval", "lexicon") else (
+                sgsa, f"{system}/test/")
+            raw = source.get(prefix + "dtw_jpe_mean_m")
+            if raw is None and prefix + "bt/slt_rouge_l" not in source:
+                continue
+            skeleton.append([name, "-" if raw is None else num(1000 * raw), num(source.get(prefix + "bt/slt_rouge_l")),
+                             num(source.get(prefix + "bt/slt_bleu4"))])
+        stats = (f"Retrieval: exact text match for {pct(b.get('retrieval/exact_rate'))} of the test clips, mean "
+                 f"chrF {num(b.get('retrieval/mean_chrf'))}. Lexicon: glosses without an entry "
+                 f"{pct(b.get('lexicon/missing_rate'))}, clips without any motion "
+                 f"{pct(b.get('lexicon/no_motion_rate'))}.\n")
+        verdict = _baseline_verdict(smlm, b)
+        return "\n".join(["Body-model path (M3T Tab. 1-2 layout):\n", motion, "Skeleton path (SGSA Tab. 3 layout):\n",
+                          page_table(["system", "DTW-JPE (mm)", "ROUGE-L", "BLEU-4"], skeleton), stats + verdict])
+    return _section(root, "metrics/baselines/metrics.json", "evaluate-baselines", head, body)
+
+
+def _baseline_verdict(smlm: dict, b: dict) -> str:
+    """Which baselines beat the SMLM on the body-model path's DTW-JPE (mean of body and hands), said outright."""
+    mine = smlm.get("dtw_jpe_mean_m")
+    better = [name for name in ("retrieval", "lexicon")
+              if mine is not None and b.get(f"{name}/dtw_jpe_mean_m", float("inf")) < mine]
+    if mine is None:
+        return ""
+    if not better:
+        return "The SMLM is closer to the reference motion (DTW-JPE, mean of body and hands) than both baselines.\n"
+    return (f"**The {' and the '.join(better)} baseline{'s' if len(better) > 1 else ''} beat{'' if len(better) > 1 else 's'} "
+            f"the SMLM on DTW-JPE** (mean of body and hands: SMLM {num(mine)} m, "
+            + ", ".join(f"{n} {num(b[f'{n}/dtw_jpe_mean_m'])} m" for n in better)
+            + ") on this corpus: one seed, a test split of mostly isolated signs whose texts occur in the training "
+              "split.\n")
+
+
 def slr_section(root: Path) -> str:
     rel = "metrics/slr/table.md"
     head = "## Recognition probe (`evaluate-slr`, M3T Tab. 4)\n"
@@ -193,7 +250,8 @@ def slr_section(root: Path) -> str:
 
 EMBEDDED_SOURCES = ("data/shards/synthetic/summary.json", "data/shards/fingerspelling/summary.json",
                     "models/tokenizers/metrics.json", "metrics/smlm/metrics.json",
-                    "metrics/backtranslation/metrics.json", "metrics/sgsa/metrics.json", "metrics/slr/table.md")
+                    "metrics/backtranslation/metrics.json", "metrics/sgsa/metrics.json", "metrics/baselines/metrics.json",
+                    "metrics/slr/table.md")
 
 
 def embedded_page(root: Path) -> str:
@@ -206,7 +264,7 @@ def embedded_page(root: Path) -> str:
              "seeds ([claims](claims.md)). Float rounding differs between CPUs, so the last digits move from machine "
              "to machine unless `M3T_REPRODUCIBLE=1` ([reproducibility](../reproducibility.md)).\n")
     return "\n".join([intro, fitting_section(root), tokenizer_section(root), smlm_section(root),
-                      backtranslation_section(root), sgsa_section(root), slr_section(root)])
+                      backtranslation_section(root), sgsa_section(root), baselines_section(root), slr_section(root)])
 
 
 def _halves(row: dict) -> str:
