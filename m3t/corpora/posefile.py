@@ -187,6 +187,30 @@ def read_pose(path: str | Path, person: int = 0) -> PoseData:
     return pose_data(pose, str(path), person)
 
 
+def component_offsets(data: PoseData) -> dict[str, tuple[int, tuple[str, ...]]] | None:
+    """Component name -> (index of its first point on the data's point axis, its point names), in file order; None
+    when the data carry no point names (read them with :func:`read_pose` / :func:`pose_data`)."""
+    if len(data.point_names) != len(data.components):
+        return None
+    offsets, start = {}, 0
+    for (name, _), names in zip(data.components, data.point_names):
+        offsets[name] = (start, tuple(names))
+        start += len(names)
+    return offsets
+
+
+def matched_points(offsets: dict[str, tuple[int, tuple[str, ...]]], component: str, names: tuple[str, ...],
+                   first_target: int) -> tuple[list[int], list[int]]:
+    """(point indices in the data, indices in a target layout whose ``component`` points are ``names`` from
+    ``first_target`` on) of the points of ``component`` the target names; ([], []) when the data lack it."""
+    if component not in offsets:
+        return [], []
+    first, points = offsets[component]
+    position = {name: i for i, name in enumerate(names)}
+    pairs = [(first + i, first_target + position[p]) for i, p in enumerate(points) if p in position]
+    return [a for a, _ in pairs], [b for _, b in pairs]
+
+
 def components_text(components: tuple[tuple[str, int], ...]) -> str:
     return ",".join(f"{name}:{n}" for name, n in components)
 

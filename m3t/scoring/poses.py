@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from m3t.corpora.listing import CorpusError
-from m3t.corpora.posefile import PoseData, read_pose
+from m3t.corpora.posefile import PoseData, component_offsets, matched_points, read_pose
 from m3t.metrics.pose_eval import FACE_MESH, FACE_REFINED, HAND_POINTS, POSE_POINTS
 from m3t.metrics.slrtp import (
     SLRTP_BODY_JOINTS,
@@ -62,13 +62,10 @@ class PoseClip:
 
 
 def _component_offsets(data: PoseData, source: str) -> dict[str, tuple[int, tuple[str, ...]]]:
-    if len(data.point_names) != len(data.components):
+    offsets = component_offsets(data)
+    if offsets is None:
         raise ScoreInputError(f"{source}: the .pose data carry no point names; read the file with "
                               "m3t.corpora.posefile.read_pose")
-    offsets, start = {}, 0
-    for (name, _), names in zip(data.components, data.point_names):
-        offsets[name] = (start, tuple(names))
-        start += len(names)
     absent = [c for c in REQUIRED_COMPONENTS if c not in offsets]
     if absent:
         raise ScoreInputError(f"{source}: not a MediaPipe Holistic .pose file; it lacks {absent} (components: "
@@ -93,13 +90,9 @@ def holistic_array(data: PoseData, source: str = "<pose>") -> np.ndarray:
     first = 0
     for component in HOLISTIC_COMPONENTS:
         names = targets[component]
-        if component in offsets:
-            start, file_names = offsets[component]
-            position = {name: k for k, name in enumerate(names)}
-            pairs = [(start + i, first + position[p]) for i, p in enumerate(file_names) if p in position]
-            if pairs:
-                src, dst = (list(v) for v in zip(*pairs))
-                out[:, dst] = np.where(valid[:, src, None], data.points[:, src, :dims], np.nan)
+        src, dst = matched_points(offsets, component, names, first)
+        if src:
+            out[:, dst] = np.where(valid[:, src, None], data.points[:, src, :dims], np.nan)
         first += len(names)
     return out
 

@@ -25,7 +25,13 @@ import numpy as np
 
 from m3t.body.landmarks import HAND_LANDMARKS, POSE_LANDMARKS
 from m3t.corpora.listing import CorpusError
-from m3t.corpora.posefile import PoseData, pose_data, read_pose
+from m3t.corpora.posefile import (
+    PoseData,
+    component_offsets,
+    matched_points,
+    pose_data,
+    read_pose,
+)
 from m3t.trackers.track import MEDIAPIPE_HOLISTIC_PARTS, Track, landmark_slices
 
 # MediaPipe's landmark names (its PoseLandmark / HandLandmark enums, in index order) as pose-format writes them:
@@ -54,25 +60,12 @@ class PoseFileTrack:
     pose_world: np.ndarray | None  # (T, 33, 3) float32 POSE_WORLD_LANDMARKS as stored (see module doc); NaN missing
 
 
-def _match(offsets: dict, component: str, names: tuple[str, ...], first_target: int) -> tuple[list, list]:
-    """(file point index, target index) for the points of ``component`` named in ``names``."""
-    if component not in offsets:
-        return [], []  # e.g. a file without a face: those landmarks stay missing
-    first, points = offsets[component]
-    position = {name: i for i, name in enumerate(names)}
-    pairs = [(first + i, first_target + position[p]) for i, p in enumerate(points) if p in position]
-    return [a for a, _ in pairs], [b for _, b in pairs]
-
-
-def _offsets(data: PoseData, source: str) -> dict[str, tuple[int, list[str]]]:
+def _offsets(data: PoseData, source: str) -> dict[str, tuple[int, tuple[str, ...]]]:
     """Component name -> (index of its first point on the file's point axis, its point names)."""
-    if len(data.point_names) != len(data.components):
+    offsets = component_offsets(data)
+    if offsets is None:
         raise PoseFileError(f".pose data of {source} carries no point names; read it with "
                             "m3t.corpora.posefile.read_pose / pose_data")
-    offsets, start = {}, 0
-    for (name, _), points in zip(data.components, data.point_names):
-        offsets[name] = (start, list(points))
-        start += len(points)
     if COMPONENTS["pose"][0] not in offsets:
         raise PoseFileError(f".pose file {source} is not MediaPipe Holistic: components "
                             f"{[c for c, _ in data.components]}, expected {[c for c, _ in COMPONENTS.values()]}")
@@ -98,7 +91,7 @@ def posedata_to_track(pose: PoseData, source: str = "<pose>") -> PoseFileTrack:
     parts = landmark_slices("mediapipe_holistic")
     src, dst = [], []
     for part, (component, names) in COMPONENTS.items():
-        a, b = _match(offsets, component, names, parts[part].start)
+        a, b = matched_points(offsets, component, names, parts[part].start)
         src, dst = src + a, dst + b
     if not src:
         raise PoseFileError(f".pose file {source}: no point of its holistic components has a MediaPipe landmark "
@@ -121,7 +114,7 @@ def posedata_to_track(pose: PoseData, source: str = "<pose>") -> PoseFileTrack:
         width, height = (int(np.ceil(v)) + 1 for v in (seen.max(0) if len(seen) else (1, 1)))
 
     pose_world = None
-    world_src, world_dst = _match(offsets, WORLD_COMPONENT, POSE_POINTS, 0)
+    world_src, world_dst = matched_points(offsets, WORLD_COMPONENT, POSE_POINTS, 0)
     if world_src and pose.dims >= 3:
         pose_world = np.full((T, len(POSE_POINTS), 3), np.nan, dtype=np.float32)
         pose_world[:, world_dst] = np.where(missing[:, world_src, None], np.nan, data[:, world_src, :3])
