@@ -22,7 +22,7 @@
     m3t slr-table                         print Tab. 4: recognition probe, full vs face-less, with intervals
     m3t dashboard [--out DIR]             build the static dashboard (default: experiment.dashboard_dir)
     m3t docs-pages [--out docs]           regenerate the docs' generated pages (results from metrics/, home from README)
-    m3t produce "TEXT" --language L [--system smlm|retrieval|lexicon|pt|sgsa] [--gloss G] [--out DIR]
+    m3t produce "TEXT" --language L [--system smlm|retrieval|lexicon|pt|sgsa] [--gloss G] [--lexicon DIR] [--out DIR]
                                           one sentence -> .pose, parameters (.npz) and an MP4 with a trained system
     m3t translate INPUT --language L       a video, frame folder, .pose or .npz -> tracking, fitting, tokens ->
                                           the SMLM's translation (and the judge's), with each step's time
@@ -212,12 +212,12 @@ def _cmd_produce(args: argparse.Namespace) -> int:
 
     try:
         result = produce(args.text, args.language, load_params(args.params), args.system, args.out, args.name,
-                         video=not args.no_video, progress=True, gloss=args.gloss)
+                         video=not args.no_video, progress=True, gloss=args.gloss, lexicon_dir=args.lexicon)
     except ProductionError as exc:
         print(f"m3t produce: {exc}", file=sys.stderr)
         return 2
     print(f"{result.system}: {result.frames} frames at {result.fps:g} fps for {result.text!r} ({result.language})")
-    for key in ("retrieved_clip", "retrieved_text", "match", "chrf", "steps", "stopped", "input", "signs", "entries", "skeleton"):
+    for key in ("retrieved_clip", "retrieved_text", "match", "chrf", "steps", "stopped", "input", "signs", "entries", "skeleton", "fingerspelled"):
         if key in result.details:
             print(f"  {key}: {result.details[key]}")
     if result.unhandled_words:
@@ -374,6 +374,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="smlm: the trained SMLM; retrieval: the nearest training clip's motion; lexicon: stored "
                         "isolated signs stitched (the two baselines); pt / sgsa: the skeletal systems (a skeleton)")
     p.add_argument("--gloss", default=None, help="lexicon: the gloss sequence to sign (default: the text's words)")
+    p.add_argument("--lexicon", default=None, help="lexicon: a folder in spoken-to-signed's layout (lexicon.csv / "
+                                                   "index.csv + .pose files); --language is its signed-language code")
     p.add_argument("--out", default="produced", help="folder of the outputs (default: produced/)")
     p.add_argument("--name", default=None, help="file name stem (default: a slug of the sentence)")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")

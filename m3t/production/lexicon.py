@@ -102,7 +102,7 @@ class Lexicon:
 
 
 def concatenate(pieces: Sequence[dict[str, np.ndarray]], transition_frames: int) -> dict[str, np.ndarray]:
-    """The pieces in order, ``transition_frames`` linearly interpolated frames between consecutive pieces
+    """The pieces ({name: (T, ...)}) in order, ``transition_frames`` linearly interpolated frames between consecutive pieces
     (excluding both ends: the last frame of one piece and the first of the next are kept as they are). No piece:
     {} (no motion)."""
     if transition_frames < 0:
@@ -111,13 +111,14 @@ def concatenate(pieces: Sequence[dict[str, np.ndarray]], transition_frames: int)
         return {}
     names = list(pieces[0])
     out: dict[str, list[np.ndarray]] = {n: [] for n in names}
-    weights = (np.arange(1, transition_frames + 1, dtype=np.float64) / (transition_frames + 1))[:, None]
+    weights = np.arange(1, transition_frames + 1, dtype=np.float64) / (transition_frames + 1)
     for i, piece in enumerate(pieces):
         if set(piece) != set(names):
             raise ValueError(f"lexicon entries with different modalities: {sorted(piece)} vs {sorted(names)}")
         for n in names:
             if i and transition_frames:
                 a, b = out[n][-1][-1].astype(np.float64), np.asarray(piece[n][0], np.float64)
-                out[n].append(((1.0 - weights) * a + weights * b).astype(np.float32))
+                w = weights.reshape(-1, *([1] * a.ndim))  # (transition_frames, 1, ...) over a frame's shape
+                out[n].append(((1.0 - w) * a + w * b).astype(np.float32))
             out[n].append(np.asarray(piece[n], np.float32))
     return {n: np.concatenate(v, axis=0) for n, v in out.items()}

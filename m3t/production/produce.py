@@ -11,7 +11,10 @@ Systems (:data:`SYSTEMS`):
 - ``lexicon``: the baseline of :mod:`m3t.production.lexicon` over the training split's isolated signs: one stored
   sign per gloss of ``gloss`` when given (e.g. ``"BOOK CHILD READ"``), else per word of the text that names a
   sign, stitched with ``params.baselines.transition_frames`` interpolated frames, posed with the body model's
-  default identity. Glosses / words without an entry are listed;
+  default identity. Glosses / words without an entry are listed. With ``lexicon_dir`` (a folder in
+  spoken-to-signed's ``lexicon.csv`` + ``.pose`` layout, :mod:`m3t.production.pose_lexicon`) the signs are the
+  folder's ``.pose`` files stitched as points: ``<name>.pose`` (holistic) and ``<name>.npz`` (``points``) only,
+  ``language`` being the lexicon's signed-language code (e.g. ``ase``), unknown words fingerspelled;
 - ``pt`` / ``sgsa``: the skeletal systems of train-sgsa (``models/sgsa/<system>.pt``) decode the text with their
   own counter (as evaluate-sgsa does), back to metres at the shoulder width of the body model's default identity.
   They produce a skeleton, not parameters: ``<name>.pose`` holds the skeleton's joints, ``<name>.npz`` the
@@ -63,8 +66,8 @@ class Production:
     unhandled_words: tuple[str, ...] = ()
     details: dict = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
-    points: np.ndarray | None = None  # (T, J, 3) metres: a skeletal system's output (params then empty)
-    graph: object = None  # the SkeletonGraph of ``points``
+    points: np.ndarray | None = None  # (T, J, 3): a skeletal system's (metres) or a .pose lexicon's output
+    graph: object = None  # the SkeletonGraph of ``points``; None: holistic points in shoulder widths
 
     @property
     def frames(self) -> int:
@@ -186,6 +189,18 @@ def produce_skeletal(text: str, language: str, params: Params, body: BodyModel, 
                       {"skeleton": loaded.graph.name, "scale_m": float(scale)}, points=points, graph=loaded.graph)
 
 
+def produce_pose_lexicon(text: str, language: str, params: Params, folder: str | Path) -> Production:
+    from m3t.production.pose_lexicon import LexiconError, PoseLexicon
+
+    try:
+        made = PoseLexicon(folder).lookup(text, language, params.baselines.transition_frames, "installed")
+    except (LexiconError, OSError) as exc:
+        raise ProductionError(str(exc)) from exc
+    return Production("lexicon", text, language, {}, np.zeros(0, np.float32), made.fps, tuple(made.missing),
+                      {"lexicon": str(folder), "signs": " ".join(w for w, _ in made.used),
+                       "fingerspelled": " ".join(made.fingerspelled)}, points=made.points)
+
+
 def write_production(result: Production, body: BodyModel, out: str | Path, name: str, video: bool = True,
                      progress: bool = False) -> Production:
     """The files of the module doc, into ``out``; their paths in ``result.files``."""
@@ -212,9 +227,14 @@ def write_production(result: Production, body: BodyModel, out: str | Path, name:
 
 
 def _write_skeleton(result: Production, out: Path, name: str, video: bool, progress: bool) -> Production:
+    from m3t.production.pose_lexicon import write_holistic_pose
     from m3t.render.posefile import export_skeleton_pose
 
-    result.files["pose"] = export_skeleton_pose(out / f"{name}.pose", result.points, result.graph, result.fps)
+    if result.graph is None:  # holistic points of a .pose lexicon: no skeleton graph, no video
+        result.files["pose"] = write_holistic_pose(out / f"{name}.pose", result.points, result.fps)
+        video = False
+    else:
+        result.files["pose"] = export_skeleton_pose(out / f"{name}.pose", result.points, result.graph, result.fps)
     with atomic_path(out / f"{name}.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, points=result.points, fps=np.float64(result.fps))
     result.files["points"] = out / f"{name}.npz"
@@ -231,10 +251,13 @@ def _write_skeleton(result: Production, out: Path, name: str, video: bool, progr
 
 def produce(text: str, language: str, params: Params, system: str = "smlm", out: str | Path | None = None,
             name: str | None = None, video: bool = True, body: BodyModel | None = None,
-            progress: bool = False, gloss: str | None = None) -> Production:
+            progress: bool = False, gloss: str | None = None, lexicon_dir: str | Path | None = None) -> Production:
     """Produce ``text`` in sign language ``language`` with ``system`` from the workspace of ``params``; with
     ``out``, write the files of the module doc there (under ``name``, default :func:`slug` of the text);
-    ``gloss``: the lexicon's input when given (the other systems read the text)."""
+    ``gloss``: the lexicon's input when given (the other systems read the text); ``lexicon_dir``: the lexicon
+    system's spoken-to-signed folder instead of the training shards' isolated signs."""
+    if lexicon_dir is not None and system != "lexicon":
+        raise ProductionError(f"a lexicon folder is the lexicon system's input; --system is {system!r}")
     if system not in SYSTEMS:
         raise ProductionError(f"system {system!r} cannot produce from text here; choose one of {', '.join(SYSTEMS)}")
     if not isinstance(text, str) or not text.strip():
@@ -243,7 +266,9 @@ def produce(text: str, language: str, params: Params, system: str = "smlm", out:
         from m3t.body.factory import load_body_model
 
         body = load_body_model(params.body)
-    if system == "lexicon":
+    if system == "lexicon" and lexicon_dir is not None:
+        result = produce_pose_lexicon(text, language, params, lexicon_dir)
+    elif system == "lexicon":
         result = produce_lexicon(text, language, params, body, gloss)
     elif system in SKELETAL:
         result = produce_skeletal(text, language, params, body, system)

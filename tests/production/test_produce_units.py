@@ -74,6 +74,31 @@ def test_produce_refusals(params, body, tmp_path):
     nowhere = replace(params, data=replace(params.data, shards_root=str(tmp_path / "none")))
     with pytest.raises(ProductionError, match=r"shard .*train\.parquet not found; run the fit-corpus stage"):
         produce("sentence 1", "ASL-SYN", nowhere, "retrieval", body=body)
+    # the tiny shards hold no isolated sign: the lexicon has no entry; checkpoints of PT / SGSA are missing
+    with pytest.raises(ProductionError, match=r"hold no isolated sign with a gloss: the lexicon baseline has no entry"):
+        produce("sentence 1", "ASL-SYN", params, "lexicon", body=body)
+    with pytest.raises(ProductionError, match=r"sgsa\.pt not found; run `dvc repro train-sgsa`"):
+        produce("sentence 1", "ASL-SYN", params, "sgsa", body=body)
+    with pytest.raises(ProductionError, match=r"a lexicon folder is the lexicon system's input; --system is 'smlm'"):
+        produce("sentence 1", "ASL-SYN", params, "smlm", body=body, lexicon_dir=tmp_path)
+
+
+def test_lexicon_from_a_pose_folder_writes_a_holistic_pose(params, body, tmp_path):
+    """spoken-to-signed's shipped fingerspelling lexicon as the user's folder: a word spelled from its letters."""
+    from pose_format import Pose
+
+    from m3t.corpora.fingerspelling import lexicon_root
+
+    result = produce("Hi!", "ase", params, "lexicon", out=tmp_path, body=body, lexicon_dir=lexicon_root())
+    assert result.details["signs"] == "h i" and result.details["fingerspelled"] == "hi"
+    pose = Pose.read((tmp_path / "hi.pose").read_bytes())
+    assert pose.body.data.shape[0] == result.frames > 0 and pose.body.fps == 25.0
+    assert [c.name for c in pose.header.components][:4] == ["POSE_LANDMARKS", "FACE_LANDMARKS",
+                                                            "LEFT_HAND_LANDMARKS", "RIGHT_HAND_LANDMARKS"]
+    summary = json.loads((tmp_path / "hi.json").read_text())
+    assert summary["system"] == "lexicon" and set(summary["files"]) == {"pose", "points", "summary"}
+    with pytest.raises(ProductionError, match=r"no entry of signed language 'xyz'"):
+        produce("hi", "xyz", params, "lexicon", body=body, lexicon_dir=lexicon_root())
 
 
 def test_translate_reads_parameter_files(body, tmp_path):
