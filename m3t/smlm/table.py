@@ -21,8 +21,9 @@ def production_table(records: list[RunRecord], variant_tag: str = "variant", bas
     if not rows:
         return "no finished evaluate-smlm runs yet: run `dvc repro evaluate-smlm`"
     named = [(name, record) for name, record in sorted(rows.items())]
-    named += [(f"baseline: {name}", record) for name, record in baseline_rows(baselines)]
+    # the columns are the models' groups: a baseline run also logs its skeleton-path figures (<system>/<split>/..)
     groups = sorted({k.rsplit("/", 1)[0] for _, r in named for k in r.metrics if k.endswith("/dtw_jpe_body_m")})
+    named += [(f"baseline: {name}", record) for name, record in baseline_rows(baselines)]
     header = ["variant", *(f"{g} {label}" for g in groups for _, label in COLUMNS), "BLEU-4"]
     body = [[name, *(fixed(record.metrics.get(f"{g}/{key}"), 3) for g in groups for key, _ in COLUMNS),
              fixed(record.metrics.get("translation_bleu4"), 2)] for name, record in named]
