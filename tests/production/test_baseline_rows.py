@@ -137,3 +137,18 @@ def test_baseline_claims_pair_the_one_baseline_run_with_each_seeds_model(tmp_pat
     with pytest.raises(LookupError, match=r"needs an evaluate-baselines run of 'lexicon' on the same data: "
                                           r"`dvc repro evaluate-baselines`"):
         claims["smlm-vs-lexicon"].collect(records)
+
+
+def test_the_results_page_says_which_baselines_beat_the_smlm():
+    from dashboards.docs_pages import _baseline_verdict
+
+    smlm = {"dtw_jpe_mean_m": 1.5}
+    both = _baseline_verdict(smlm, {"retrieval/dtw_jpe_mean_m": 1.2, "lexicon/dtw_jpe_mean_m": 1.4})
+    assert both.startswith("**The retrieval and the lexicon baselines beat the SMLM on DTW-JPE** (mean of body and "
+                           "hands: SMLM 1.5 m, retrieval 1.2 m, lexicon 1.4 m)")
+    one = _baseline_verdict(smlm, {"retrieval/dtw_jpe_mean_m": 1.2, "lexicon/dtw_jpe_mean_m": 1.6})
+    assert one.startswith("**The retrieval baseline beats the SMLM on DTW-JPE** (mean of body and hands: SMLM 1.5 m, "
+                          "retrieval 1.2 m)")
+    assert _baseline_verdict(smlm, {"retrieval/dtw_jpe_mean_m": 1.5}) == (
+        "The SMLM is closer to the reference motion (DTW-JPE, mean of body and hands) than both baselines.\n")
+    assert _baseline_verdict({}, {"retrieval/dtw_jpe_mean_m": 1.2}) == ""

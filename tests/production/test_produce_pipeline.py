@@ -66,6 +66,8 @@ def test_missing_checkpoint_names_the_stage(tiny_workspace, tmp_path, body):
     with pytest.raises(ProductionError, match=r"SMLM checkpoint .*smlm\.pt not found; run `dvc repro train-smlm` "
                                               r"first"):
         produce("sentence 1", "ASL-SYN", empty, "smlm", body=body)
-    with pytest.raises(ProductionError, match=r"system 'sgsa' cannot produce from text here; choose one of smlm, "
-                                              r"retrieval"):
+    with pytest.raises(ProductionError, match=r"system 'copy' cannot produce from text here; choose one of smlm, "
+                                              r"retrieval, lexicon, pt, sgsa$"):
+        produce("sentence 1", "ASL-SYN", params, "copy", body=body)
+    with pytest.raises(ProductionError, match=r"sgsa\.pt not found; run `dvc repro train-sgsa`"):  # none trained
         produce("sentence 1", "ASL-SYN", params, "sgsa", body=body)

@@ -566,8 +566,11 @@ def test_the_paper_tables_each_read_their_own_stage():
             _run("sl", "evaluate-slr")]
     page = paper_tables(runs)
     assert page.startswith("<p class=note>Measured tables come from the newest finished runs of each variant, by the "
-                           "definitions each table names (SL-T text metrics, SOKE DTW motion metrics). The papers' "
-                           "numbers are on their own corpora: comparable in layout, not in value.</p><h2 id=\"m3t-tab1\">"
+                           "definitions each table names (SL-T text metrics, SOKE DTW motion metrics). Rows "
+                           "<i>baseline</i> are the copy baselines of evaluate-baselines (retrieval: the nearest "
+                           "training text's motion; lexicon: one stored sign per annotated gloss), scored on the same "
+                           "clips by the same scorers and judges. The papers' numbers are on their own corpora: "
+                           "comparable in layout, not in value.</p><h2 id=\"m3t-tab1\">"
                            "M3T Tab. 1</h2><div class=pair><div><h4>This platform (measured)</h4>")
     assert _table(page, "m3t-tab1-measured")[1:] == [["production only", "-"]]
     assert _table(page, "m3t-tab2-measured") == [["motion", "ASL-SYN R", "ASL-SYN B4"],
@@ -1023,7 +1026,13 @@ def test_each_docs_section_opens_with_its_heading_and_paragraph(tmp_path):
         "on the study corpus over seeds ([claims](claims.md)). Float rounding differs between CPUs, so the last "
         "digits move from machine to machine unless `M3T_REPRODUCIBLE=1` ([reproducibility](../reproducibility.md))."
         "\n\n" + _FITTING_HEAD)
-    assert page.endswith("\n" + docs_pages.sgsa_section(tmp_path) + "\n" + docs_pages.slr_section(tmp_path))
+    assert docs_pages.baselines_section(tmp_path).endswith(missing("metrics/baselines/metrics.json",
+                                                                   "evaluate-baselines"))
+    assert docs_pages.baselines_section(tmp_path).startswith(
+        "## Baselines beside the models (`evaluate-baselines`)\n\nThe copy baselines of the field, scored exactly as "
+        "the models: ")
+    assert page.endswith("\n" + docs_pages.sgsa_section(tmp_path) + "\n" + docs_pages.baselines_section(tmp_path)
+                         + "\n" + docs_pages.slr_section(tmp_path))
     assert "\n" + _TOKENIZER_HEAD in page and "\n" + _SMLM_HEAD in page and "\n" + _BT_HEAD in page
 
 
