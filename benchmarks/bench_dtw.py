@@ -19,11 +19,20 @@ the JPE cost matrices, DP, raw and path-normalised cost and path of the 3 region
 
 Also reported: PA cost matrices with the SVD solver vs the QCP solver (the faster is the torch default).
 
+Instruction-set levels (``levels``): the new kernels' pairs/s and ``evaluate_pairs``' rate, each level in fresh
+interpreters with their own numba cache, in alternating rounds (the best of ``--level-rounds`` counts): ``native``
+(what numba targets on this host) and ``avx2`` (numba told the CPU is a Haswell without AVX-512:
+``NUMBA_CPU_NAME=haswell``, ``NUMBA_CPU_FEATURES`` AVX2 + FMA; NumPy's OpenBLAS as its Haswell kernels,
+``OPENBLAS_CORETYPE=Haswell``), beside the float64 matmul peak each level reaches. On an AVX-512 host this says
+what the kernels lose without AVX-512 on the same silicon (``kernel_ratio`` native / avx2 against
+``matmul_ratio``); on an AVX2 host both levels are the same code.
+
     python benchmarks/bench_dtw.py [--pairs 48] [--threads 2] [--device cuda] [--out benchmarks/results/dtw.json]
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import subprocess
@@ -150,6 +159,63 @@ def compile_seconds() -> dict[str, float]:
     return out
 
 
+LEVELS = {"native": {},
+          "avx2": {"NUMBA_CPU_NAME": "haswell", "OPENBLAS_CORETYPE": "Haswell",
+                   "NUMBA_CPU_FEATURES": "+64bit,+avx,+avx2,+bmi,+bmi2,+cmov,+cx16,+f16c,+fma,+fsgsbase,+lzcnt,+movbe,"
+                                         "+popcnt,+sse,+sse2,+sse3,+sse4.1,+sse4.2,+ssse3,+xsave,-avx512f,-avx512vl,"
+                                         "-avx512bw,-avx512dq,-avx512cd"}}
+LEVEL_SNIPPET = """
+import json, sys, time
+import numpy as np
+sys.path.insert(0, {bench!r})
+from bench_dtw import REGIONS, make_pairs, new_arm
+from m3t.metrics.motion import evaluate_pairs
+pairs = make_pairs({pairs}, seed=0)
+new_arm(pairs[:1], False), new_arm(pairs[:1], True), evaluate_pairs(pairs[:1])  # compile / load
+def best(run, repeats=3):
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter(); run(); times.append(time.perf_counter() - start)
+    return min(times)
+a = np.random.default_rng(0).random((1024, 1024))
+out = {{"jpe_pairs_per_s": len(pairs) / best(lambda: new_arm(pairs, False)),
+        "pa_pairs_per_s": len(pairs) / best(lambda: new_arm(pairs, True)),
+        "evaluate_pairs_pairs_per_s": len(pairs) / best(lambda: evaluate_pairs(pairs)),
+        "matmul_gflops": 2 * 1024 ** 3 / best(lambda: a @ a, 5) / 1e9}}
+import numba
+out["numba_cpu"] = numba.config.CPU_NAME or "host"
+print(json.dumps(out))
+"""
+
+
+def level_rates(pairs: int, rounds: int) -> dict:
+    """The kernels' rates at each instruction-set level of :data:`LEVELS` (module doc), the best of ``rounds``
+    alternating rounds, and the ratios native / avx2."""
+    import llvmlite.binding as llvm
+
+    root = Path(__file__).resolve().parents[1]
+    snippet = LEVEL_SNIPPET.format(bench=str(root / "benchmarks"), pairs=pairs)
+    best: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as caches:
+        for _ in range(rounds):
+            for level, settings in LEVELS.items():
+                env = {**os.environ, "PYTHONPATH": str(root), "NUMBA_CACHE_DIR": str(Path(caches) / level),
+                       **settings}
+                run = subprocess.run([sys.executable, "-c", snippet], env=env, capture_output=True, text=True,
+                                     check=True)
+                rates = json.loads(run.stdout.strip().splitlines()[-1])
+                kept = best.setdefault(level, rates)
+                for key, value in rates.items():
+                    if isinstance(value, float):
+                        kept[key] = max(kept[key], value)
+    llvm.initialize_native_target()
+    out = {"host_cpu": llvm.get_host_cpu_name(), "host_avx512": "+avx512f" in llvm.get_host_cpu_features().flatten(),
+           "rounds": rounds, "levels": best}
+    for key in ("jpe_pairs_per_s", "pa_pairs_per_s", "evaluate_pairs_pairs_per_s", "matmul_gflops"):
+        out[f"ratio_native_vs_avx2_{key}"] = best["native"][key] / best["avx2"][key]
+    return out
+
+
 # ---------------------------------------------------------------- independent numpy baseline
 
 
@@ -202,6 +268,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="runs of each new arm; the fastest counts")
     parser.add_argument("--device", default="cpu", help="cuda: also time the torch PA path on the GPU")
     parser.add_argument("--gpu-batch", type=int, default=64)
+    parser.add_argument("--level-pairs", type=int, default=24, help="pairs per instruction-set level run")
+    parser.add_argument("--level-rounds", type=int, default=3, help="alternating rounds of the levels (0: skip)")
     parser.add_argument("--out", default="benchmarks/results/dtw.json")
     args = parser.parse_args()
     pairs = make_pairs(args.pairs, seed=0)
@@ -241,6 +309,8 @@ def main() -> None:
     both_s, _ = best_seconds(lambda: evaluate_pairs(pairs), args.repeats)
     result["evaluate_pairs_both_metrics_pairs_per_s"] = args.pairs / both_s
     result.update(compiled)
+    if args.level_rounds > 0:
+        result["instruction_set_levels"] = level_rates(args.level_pairs, args.level_rounds)
 
     solver = {}
     for method in ("quaternion", "svd"):
