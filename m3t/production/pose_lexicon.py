@@ -21,7 +21,9 @@ trimmed to its signing span (the frames where a wrist is above its elbow, 5 fram
 where the wrist is seen; the whole clip when a wrist never rises), centred on its mean shoulder midpoint and divided
 by its mean shoulder width (pose-format's normalisation, per sign), then the signs are joined by ``transition_frames`` frames interpolated
 linearly (:func:`m3t.production.lexicon.concatenate`); a point missing at either end of a transition stays missing.
-Signs recorded at other rates are resampled to the first sign's rate (nearest frame).
+Signs recorded at other rates are resampled to the first sign's rate as the fingerspelling corpus resamples its
+letters (linear where both neighbouring frames see a point). A sign without both shoulders in any frame is refused
+with its row.
 
 Every path is resolved inside the folder (a row naming a file outside it is refused with its row number); a
 malformed row names the table, the row and the column.
@@ -32,20 +34,21 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from m3t.atomic import write_bytes
+from m3t.corpora.listing import CorpusError
 from m3t.corpora.posefile import read_pose
+from m3t.metrics.pose_eval import normalize_by_shoulders, signing_span
 from m3t.production.lexicon import concatenate
 from m3t.production.retrieval import normalise
 from m3t.scoring.poses import holistic_array
 
 TABLES = ("index.csv", "lexicon.csv", "data.csv")
 COLUMNS = ("path", "spoken_language", "signed_language", "start", "end", "words", "glosses", "priority")
-SPAN_MARGIN = 5  # frames kept either side of the signing span (spoken-to-signed's get_signing_boundary)
 POSE_COUNT, HAND_COUNT, FACE_MESH = 33, 21, 468
 
 
@@ -142,7 +145,7 @@ class PoseLexicon:
                 pieces.append(index[word])
                 used.append((word, str(index[word].path.relative_to(self.folder))))
                 continue
-            spelling = _spell(word, letters)
+            spelling = _spell(word, letters, signed_language)
             if spelling is None:
                 missing.append(word)
                 continue
@@ -152,26 +155,23 @@ class PoseLexicon:
                 used.append((letter, letters[letter].path.name))
         if not pieces:
             raise LexiconError(f"no entry of {signed_language!r} for any word of {text!r} (missing: {missing})")
-        clips = [_sign(entry) for entry in pieces]
-        fps = clips[0][1]
-        points = [_normalised(_resampled(p, rate, fps)) for p, rate in clips]
+        first, fps = _sign(pieces[0], None)
+        points = [first] + [_sign(entry, fps)[0] for entry in pieces[1:]]
         stitched = concatenate([{"points": p} for p in points], transition_frames)["points"]
         return PoseLexical(stitched.astype(np.float64), fps, used, spelled, missing)
 
 
-def _spell(word: str, letters: dict[str, PoseEntry]) -> list[str] | None:
-    """Greedy longest-letter-first spelling of ``word``, None when a part has no letter."""
+def _spell(word: str, letters: dict[str, PoseEntry], signed_language: str) -> list[str] | None:
+    """The fingerspelling corpus's greedy longest-letter-first spelling of ``word``
+    (:func:`m3t.corpora.fingerspelling.split_letters`), None when a part has no letter."""
+    from m3t.corpora.fingerspelling import split_letters
+
     if not letters:
         return None
-    out, i = [], 0
-    keys = sorted(letters, key=len, reverse=True)
-    while i < len(word):
-        found = next((k for k in keys if word.startswith(k, i)), None)
-        if found is None:
-            return None
-        out.append(found)
-        i += len(found)
-    return out
+    try:
+        return split_letters(word, list(letters), signed_language)
+    except CorpusError:
+        return None
 
 
 def _installed_letters(signed_language: str) -> dict[str, PoseEntry]:
@@ -183,60 +183,35 @@ def _installed_letters(signed_language: str) -> dict[str, PoseEntry]:
         return {}
 
 
-def _sign(entry: PoseEntry) -> tuple[np.ndarray, float]:
-    """(T, J, 3) holistic points of one entry, cut to its times and trimmed to its signing span, and its rate."""
+def _sign(entry: PoseEntry, fps: float | None) -> tuple[np.ndarray, float]:
+    """(T, J, 3) holistic points of one entry in shoulder widths (pose-format's normalisation,
+    :func:`m3t.metrics.pose_eval.normalize_by_shoulders`), cut to its times, at ``fps`` (default: its own; the
+    fingerspelling corpus's resampling, :func:`m3t.corpora.fingerspelling.resample`) and trimmed to its signing span
+    (:func:`m3t.metrics.pose_eval.signing_span`, spoken-to-signed's rule), and its rate."""
+    from m3t.corpora.fingerspelling import resample
+
     if not entry.path.is_file():
         raise LexiconError(f"row {entry.row}: {entry.path} not found")
     data = read_pose(entry.path)
+    first = round(entry.start_ms * data.fps / 1000)
+    last = round(entry.end_ms * data.fps / 1000) if entry.end_ms > 0 else len(data.points)
+    data = resample(replace(data, points=data.points[first:last], confidence=data.confidence[first:last]),
+                    fps or data.fps)
+    if not len(data.points):
+        raise LexiconError(f"row {entry.row}: {entry.path.name} has no frames between {entry.start_ms} and "
+                           f"{entry.end_ms} ms")
     points = holistic_array(data, str(entry.path))
     if points.shape[-1] == 2:
         points = np.concatenate([points, np.zeros_like(points[..., :1])], axis=-1)
     face = points.shape[1] - POSE_COUNT - 2 * HAND_COUNT
     if face != FACE_MESH:  # the refined face's 10 iris points follow the mesh's 468: keep the mesh
         points = np.concatenate([points[:, :POSE_COUNT + FACE_MESH], points[:, POSE_COUNT + face:]], axis=1)
-    fps = float(data.fps)
-    first = round(entry.start_ms * fps / 1000)
-    last = round(entry.end_ms * fps / 1000) if entry.end_ms > 0 else len(points)
-    points = points[first:last]
-    if not len(points):
-        raise LexiconError(f"row {entry.row}: {entry.path.name} has no frames between {entry.start_ms} and "
-                           f"{entry.end_ms} ms")
-    start, end = signing_span(points)
-    return points[start:end], fps
-
-
-def signing_span(points: np.ndarray) -> tuple[int, int]:
-    """[first, last) frames where either wrist is above its elbow (image y grows downwards), ``SPAN_MARGIN``
-    frames either side, within the frames its wrist is seen; the whole clip when no wrist rises."""
-    starts, ends = [], []
-    for wrist, elbow in ((15, 13), (16, 14)):  # MediaPipe pose: LEFT_WRIST / LEFT_ELBOW, RIGHT_WRIST / RIGHT_ELBOW
-        seen = np.isfinite(points[:, wrist]).all(-1)
-        raised = seen & np.isfinite(points[:, elbow]).all(-1) & (points[:, wrist, 1] < points[:, elbow, 1])
-        if not raised.any():
-            continue
-        seen_at, raised_at = np.flatnonzero(seen), np.flatnonzero(raised)
-        starts.append(max(int(seen_at[0]), int(raised_at[0]) - SPAN_MARGIN))
-        ends.append(min(int(seen_at[-1]) + 1, int(raised_at[-1]) + 1 + SPAN_MARGIN))
-    return (min(starts), max(ends)) if starts else (0, len(points))
-
-
-def _shoulder_width(points: np.ndarray) -> float:
-    width = np.nanmean(np.linalg.norm(points[:, 11] - points[:, 12], axis=-1))  # LEFT_ / RIGHT_SHOULDER
-    return float(width) if np.isfinite(width) and width > 0 else 1.0
-
-
-def _normalised(points: np.ndarray) -> np.ndarray:
-    """Centred on the mean shoulder midpoint, divided by the mean shoulder width."""
-    centre = np.nanmean((points[:, 11] + points[:, 12]) / 2, axis=0)
-    centre = np.where(np.isfinite(centre), centre, 0.0)
-    return (points - centre) / _shoulder_width(points)
-
-
-def _resampled(points: np.ndarray, fps: float, target: float) -> np.ndarray:
-    if fps == target:
-        return points
-    frames = max(1, round(len(points) * target / fps))
-    return points[np.minimum((np.arange(frames) * fps / target).astype(int), len(points) - 1)]
+    missing = ~np.isfinite(points)
+    start, end = signing_span(points, missing)
+    try:
+        return normalize_by_shoulders(points[start:end], missing[start:end], entry.path.name), float(data.fps)
+    except ValueError as exc:
+        raise LexiconError(f"row {entry.row}: {exc}") from exc
 
 
 def write_holistic_pose(path: str | Path, points: np.ndarray, fps: float, width: int = 1024,

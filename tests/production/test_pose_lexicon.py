@@ -10,12 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from m3t.production.pose_lexicon import (
-    LexiconError,
-    PoseLexicon,
-    signing_span,
-    write_holistic_pose,
-)
+from m3t.metrics.pose_eval import signing_span
+from m3t.production.pose_lexicon import LexiconError, PoseLexicon, write_holistic_pose
 from m3t.scoring.poses import holistic_array
 
 J = 33 + 468 + 21 + 21
@@ -76,12 +72,16 @@ def test_the_written_file_reads_back_as_holistic(folder, tmp_path):
 
 
 def test_signing_span():
-    assert signing_span(sign(30, 0.0, slice(10, 21))) == (5, 26)
-    assert signing_span(sign(30, 0.0, slice(2, 4))) == (0, 9)  # clipped at the first frame
-    assert signing_span(sign(30, 0.0)) == (0, 30)  # never raised: the whole clip
+    """The lexicon trims with pose-evaluation's span (spoken-to-signed's rule), on these holistic points."""
+    def span(points):
+        return signing_span(points, ~np.isfinite(points))
+
+    assert span(sign(30, 0.0, slice(10, 21))) == (5, 26)
+    assert span(sign(30, 0.0, slice(2, 4))) == (0, 9)  # clipped at the first frame
+    assert span(sign(30, 0.0)) == (0, 30)  # never raised: the whole clip
     hidden = sign(30, 0.0, slice(10, 21))
     hidden[25:, 15] = np.nan  # the wrist unseen from frame 25: the span ends there
-    assert signing_span(hidden) == (5, 25)
+    assert span(hidden) == (5, 25)
 
 
 def test_refusals_name_the_table_row_and_column(folder, tmp_path):
