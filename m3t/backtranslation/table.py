@@ -27,13 +27,14 @@ def backtranslation_table(ground_truth: list[RunRecord], production: list[RunRec
         rows.append((GT_ROW, {k.removeprefix(f"{SLT_DEFINITION}/"): v for k, v in gt["gt"].metrics.items()}))
     variants = newest_finished([r for r in production if any(k.startswith("bt/") for k in r.metrics)], variant_of)
     order = {v: i for i, v in enumerate(VARIANT_ORDER)}
-    for name, record in sorted(variants.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])):
-        prefix = f"bt/{SLT_DEFINITION}/"
-        rows.append((f"SMLM, {name}", {k.removeprefix(prefix): v for k, v in record.metrics.items()
-                                       if k.startswith(prefix)}))
     prefix = f"bt/{SLT_DEFINITION}/"
-    rows += [(f"baseline: {name}", {k.removeprefix(prefix): v for k, v in record.metrics.items()
-                                    if k.startswith(prefix)}) for name, record in baseline_rows(baselines)]
+
+    def judged(record: RunRecord) -> dict[str, float]:
+        return {k.removeprefix(prefix): v for k, v in record.metrics.items() if k.startswith(prefix)}
+
+    for name, record in sorted(variants.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])):
+        rows.append((f"SMLM, {name}", judged(record)))
+    rows += [(f"baseline: {name}", judged(record)) for name, record in baseline_rows(baselines)]
     if not rows:
         return ("no finished evaluate-backtranslation / evaluate-smlm runs with back-translation yet: "
                 "run `dvc repro evaluate-smlm`")

@@ -145,7 +145,8 @@ def produce_retrieval(text: str, language: str, params: Params, body: BodyModel)
 def produce_lexicon(text: str, language: str, params: Params, body: BodyModel, gloss: str | None = None) -> Production:
     from m3t.production.lexicon import Lexicon
 
-    lexicon = Lexicon(_train_clips(params))
+    train = _train_clips(params)
+    lexicon = Lexicon(train)
     if not len(lexicon):
         raise ProductionError(f"the training shards of {list(params.data.train_corpora)} hold no isolated sign with a "
                               "gloss: the lexicon baseline has no entry (use --system retrieval or smlm)")
@@ -154,7 +155,7 @@ def produce_lexicon(text: str, language: str, params: Params, body: BodyModel, g
         raise ProductionError(f"no lexicon entry for any {made.input} of {gloss or text!r} (looked up: "
                               f"{' '.join(made.missing)}); the lexicon holds {', '.join(sorted(lexicon.entries))}")
     return Production("lexicon", text, language, made.params, body.default_identity().detach().cpu().numpy(),
-                      _language_fps(_train_clips(params, modalities=()), language), tuple(dict.fromkeys(made.missing)),
+                      _language_fps(train, language), tuple(dict.fromkeys(made.missing)),
                       {"input": made.input, "signs": " ".join(g for g, _ in made.used),
                        "entries": " ".join(cid for _, cid in made.used)})
 

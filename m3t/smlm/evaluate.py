@@ -48,10 +48,6 @@ def motion_summary(scores: MotionScores) -> dict[str, float]:
     return {**out, **scores.group_summary}
 
 
-def group_name(example: Example, reference: FittedClip) -> str:
-    return f"{reference.clip.corpus}/{example.language}"
-
-
 def score_against(scorer: MotionScorer, references: Sequence[FittedClip],
                   motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
     """Parameters ``{clip id: {modality: (T, D_m)}}`` (``{}``: no motion, scored as the rest pose) of every

@@ -6,7 +6,7 @@ path-length-normalised variant is in the run's metrics as ``..._pathnorm_m``.
 """
 from __future__ import annotations
 
-from m3t.experiment import RunRecord, newest_finished
+from m3t.experiment import RunRecord, newest_finished, variant_of
 from m3t.reporting import fixed, markdown_table
 
 COLUMNS = (("dtw_pa_jpe_body_m", "PA body"), ("dtw_pa_jpe_hand_m", "PA hand"),
@@ -35,6 +35,6 @@ BASELINE_ORDER = ("retrieval", "lexicon")
 
 def baseline_rows(records: list[RunRecord]) -> list[tuple[str, RunRecord]]:
     """The newest finished evaluate-baselines run of each system (its ``variant`` tag), retrieval first."""
-    newest = newest_finished(records, lambda r: r.tags.get("variant", r.run_id[:8]))
+    newest = newest_finished(records, variant_of)
     order = {name: i for i, name in enumerate(BASELINE_ORDER)}
     return sorted(newest.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0]))
