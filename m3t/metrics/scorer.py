@@ -9,35 +9,52 @@ posed with the same signer identity, so the error is the motion's alone. The poi
 "soke_exact")`` the body region is SOKE's (:func:`m3t.metrics.soke.soke_keypoints`: root, 12 measured points,
 the further points of its Procrustes) and SOKE's zeroed joints are zeroed before posing; SMPL-FX only.
 
-A reference is posed once: :meth:`MotionScorer.reference` stores its points under the clip id, and every
-later :meth:`MotionScorer.score` of that clip reuses them (a checkpoint selection scores the same clips at
-every evaluation). **No clip leaves a mean unseen**: an empty prediction (0 frames, e.g. a model that stopped
-at its first step) is scored as what a viewer of the avatar would see, one frame of the body model's rest
-pose, and counted in ``empty_rate`` (its row keeps ``frames == 0``).
+**Memory stays within a frame budget** (:data:`REFERENCE_FRAMES` by default), however many clips are scored:
+:meth:`MotionScorer.reference` keeps a reference's parameters only, and its points are posed when it is first
+scored and kept in a least-recently-used cache of at most ``frame_budget`` frames (a checkpoint selection scores
+the same clips at every evaluation: those the cache holds are not posed again, the others are re-posed from
+their parameters, the same computation, so the same numbers). :meth:`MotionScorer.score` poses and scores the
+pairs a chunk at a time, each chunk holding at most ``frame_budget`` frames of predictions and references (a
+pair longer than that is a chunk alone), and averages once over every clip. **No clip leaves a mean unseen**:
+an empty prediction (0 frames, e.g. a model that stopped at its first step) is scored as what a viewer of the
+avatar would see, one frame of the body model's rest pose, and counted in ``empty_rate`` (its row keeps
+``frames == 0``).
 
 Axis legend: T frames (T1 predicted, T2 reference), D modality dim, K points of a region, P identity dim.
 """
 from __future__ import annotations
 
-from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections import OrderedDict, defaultdict
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from m3t.body.metric_sets import joined_keypoints, metric_keypoints, metric_points
 from m3t.body.protocol import BodyModel, as_tensors
-from m3t.metrics.motion import MotionMetricsConfig, evaluate_pairs, summarise
+from m3t.metrics.motion import (
+    MotionMetricsConfig,
+    _validated,
+    evaluate_pairs,
+    summarise,
+)
 from m3t.metrics.soke import soke_keypoints, zero_soke_joints
 
 ParamSequence = Mapping[str, np.ndarray]
 """Modality name -> (T, D_m) per-frame parameters in the body model's layout."""
 
+REFERENCE_FRAMES = 10_000
+"""Default ``frame_budget`` of :class:`MotionScorer`: frames of posed points held at once, in the reference cache
+and again in the chunk being scored. Anny's metric points are 3,572 a frame (3,518 of them face vertices), ~43 kB
+in float32: ~0.43 GB of cached references, and a chunk at most ~1.3 GB while it is widened to float64 for the DTW
+(200-frame clips: ~50 cached references, chunks of ~25 pairs)."""
+
 
 @dataclass(frozen=True)
 class MotionPair:
-    """One clip to score. ``reference`` None: the points stored by :meth:`MotionScorer.reference` are used."""
+    """One clip to score. ``reference`` None: the reference stored by :meth:`MotionScorer.reference` is used."""
 
     clip_id: str
     group: str  # e.g. ``<corpus>/<language>``; summaries are also given per group
@@ -66,6 +83,20 @@ class MotionScores:
     groups: dict[str, dict[str, float]]  # group -> metric -> mean, groups in first-seen order
     empty_rate: float  # fraction of clips with an empty prediction (0.0 for no clips)
 
+    @classmethod
+    def of(cls, per_clip: Sequence[ClipScore]) -> MotionScores:
+        """The means of scored clips (every scorer's one place for them): overall, per group, ``empty_rate``."""
+        per_clip = list(per_clip)
+        by_group: dict[str, list[dict[str, float]]] = defaultdict(list)
+        for clip in per_clip:
+            by_group[clip.group].append(clip.metrics)
+        return cls(
+            per_clip=per_clip,
+            overall=summarise([c.metrics for c in per_clip]) if per_clip else {},
+            groups={group: summarise(metrics) for group, metrics in by_group.items()},
+            empty_rate=float(np.mean([c.frames == 0 for c in per_clip])) if per_clip else 0.0,
+        )
+
     @property
     def group_summary(self) -> dict[str, float]:
         """``"<group>/<metric>"`` -> mean."""
@@ -81,50 +112,162 @@ def _frames(params: ParamSequence) -> int:
     return int(np.asarray(next(iter(params.values()))).shape[0]) if params else 0
 
 
+@dataclass(frozen=True)
+class _Reference:
+    """A stored reference: what posing it takes, not its points."""
+
+    params: dict[str, np.ndarray]  # (T2, D_m) float32 per modality
+    identity: np.ndarray  # (P,) float32
+    frames: int  # T2
+
+
 class MotionScorer:
     """Poses parameter sequences into the metric point sets of ``body`` and scores predictions against references.
 
     ``config.mode == "soke_exact"`` needs an SMPL-FX ``body`` (:class:`m3t.metrics.soke.SokeModeError` otherwise).
+    ``frame_budget`` bounds the posed frames held at once (module docstring, :data:`REFERENCE_FRAMES`): the cache
+    of reference points and each chunk :meth:`score` poses. One scorer serves one thread at a time.
     """
 
-    def __init__(self, body: BodyModel, config: MotionMetricsConfig = MotionMetricsConfig()):
-        self.body, self.config = body, config
+    def __init__(self, body: BodyModel, config: MotionMetricsConfig = MotionMetricsConfig(),
+                 frame_budget: int = REFERENCE_FRAMES):
+        if isinstance(frame_budget, bool) or not isinstance(frame_budget, (int, np.integer)) or frame_budget < 1:
+            raise ValueError(f"frame_budget: expected a positive number of frames, got {frame_budget!r}")
+        self.body, self.config, self.frame_budget = body, config, int(frame_budget)
         self.sets = soke_keypoints(body) if config.mode == "soke_exact" else metric_keypoints(body)
         self._joined = joined_keypoints(body, self.sets)  # built once: every sequence is posed in one forward
-        self._references: dict[str, dict[str, np.ndarray]] = {}
+        self._references: dict[str, _Reference] = {}
+        # clip id -> {region: (T2, K, 3)} in the posing dtype, least recently used first
+        self._cache: OrderedDict[str, dict[str, np.ndarray]] = OrderedDict()
+        self._cache_frames = 0
 
     @torch.no_grad()
-    def points(self, params: ParamSequence, identity: np.ndarray) -> dict[str, np.ndarray]:
-        """(T, D_m) per modality and (P,) identity -> {region: (T, K, 3) float64 metres}."""
+    def _pose(self, params: ParamSequence, identity: np.ndarray) -> dict[str, np.ndarray]:
+        """{region: (T, K, 3)} in the dtype the body model poses in (float32: half the memory of float64, and
+        widened to float64 exactly wherever it is measured)."""
         ident = torch.as_tensor(np.asarray(identity), dtype=torch.float32)
         tensors = as_tensors(params)
         if self.config.mode == "soke_exact":
             tensors = zero_soke_joints(self.body.layout, tensors)
-        return {k: v.numpy().astype(np.float64)
-                for k, v in metric_points(self.body, tensors, ident, self.sets, self._joined).items()}
+        return {k: v.numpy() for k, v in metric_points(self.body, tensors, ident, self.sets, self._joined).items()}
+
+    def points(self, params: ParamSequence, identity: np.ndarray) -> dict[str, np.ndarray]:
+        """(T, D_m) per modality and (P,) identity -> {region: (T, K, 3) float64 metres}."""
+        return {k: v.astype(np.float64) for k, v in self._pose(params, identity).items()}
 
     def reference(self, clip_id: str, params: ParamSequence, identity: np.ndarray) -> None:
-        """Pose and store the reference of ``clip_id`` (replacing one stored before under that id)."""
-        self._references[clip_id] = self.points(params, identity)
+        """Store the reference of ``clip_id`` (replacing one stored before under that id), posed when scored.
 
-    def _reference_points(self, pair: MotionPair) -> dict[str, np.ndarray]:
+        Its parameters are kept as float32 arrays (no copy of float32 input: leave them unchanged afterwards);
+        parameters that do not fit the body model's layout raise ``ValueError`` naming the clip, here rather
+        than at scoring.
+        """
+        stored = {k: np.asarray(v, dtype=np.float32) for k, v in params.items()}
+        ident = np.asarray(identity, dtype=np.float32)
+        try:
+            frames = self.body.layout.check(stored)
+        except ValueError as exc:
+            raise ValueError(f"reference of clip {clip_id!r}: {exc}") from exc
+        if ident.size != self.body.layout.identity_dim:
+            raise ValueError(f"reference of clip {clip_id!r}: identity of shape {ident.shape}, expected "
+                             f"({self.body.layout.identity_dim},) for body model {self.body.name!r}")
+        self._drop(clip_id)
+        self._references[clip_id] = _Reference(stored, ident, frames)
+
+    @property
+    def cached(self) -> tuple[str, ...]:
+        """Clip ids whose reference points are held, least recently used first."""
+        return tuple(self._cache)
+
+    @property
+    def cached_frames(self) -> int:
+        """Frames of reference points held (never above ``frame_budget``)."""
+        return self._cache_frames
+
+    def _drop(self, clip_id: str) -> None:
+        if clip_id in self._cache:
+            del self._cache[clip_id]
+            self._cache_frames -= self._references[clip_id].frames
+
+    def _keep(self, clip_id: str, points: dict[str, np.ndarray], frames: int, needed: set[str]) -> None:
+        """Cache ``points``, evicting the least recently used references first, but none of ``needed``: a score
+        that evicted its own clips would pose every clip again at every evaluation once they outgrow the
+        budget (a cyclic scan defeats plain LRU), where this keeps the first that fit."""
+        room, evicted = self.frame_budget - self._cache_frames, []
+        for cid in self._cache:
+            if room >= frames:
+                break
+            if cid not in needed:
+                evicted.append(cid)
+                room += self._references[cid].frames
+        if room < frames:  # longer than the budget, or only clips still needed would make room: used, not kept
+            return
+        for cid in evicted:
+            self._drop(cid)
+        self._cache[clip_id] = points
+        self._cache_frames += frames
+
+    def _reference_points(self, pair: MotionPair, needed: set[str]) -> dict[str, np.ndarray]:
         if pair.reference is not None:
-            return self.points(pair.reference, pair.identity)
-        if pair.clip_id not in self._references:
-            raise KeyError(f"clip {pair.clip_id!r}: no reference; store it with MotionScorer.reference(clip_id, "
-                           "params, identity) or give the pair its reference params")
-        return self._references[pair.clip_id]
+            return self._pose(pair.reference, pair.identity)
+        if pair.clip_id in self._cache:
+            self._cache.move_to_end(pair.clip_id)
+            return self._cache[pair.clip_id]
+        stored = self._references[pair.clip_id]
+        points = self._pose(stored.params, stored.identity)
+        self._keep(pair.clip_id, points, stored.frames, needed)
+        return points
 
     def rest_pose(self) -> dict[str, np.ndarray]:
         """One frame of the body model's rest pose: how an empty prediction is scored."""
         return {k: v.detach().cpu().numpy() for k, v in self.body.rest_params(1).items()}
 
+    def _chunks(self, pairs: Sequence[MotionPair]) -> Iterator[slice]:
+        """Consecutive pairs whose frames (prediction, 1 for an empty one, plus reference) fit the budget."""
+        start, frames = 0, 0
+        for n, pair in enumerate(pairs):
+            ref = _frames(pair.reference) if pair.reference is not None else self._references[pair.clip_id].frames
+            size = max(_frames(pair.prediction), 1) + ref
+            if n > start and frames + size > self.frame_budget:
+                yield slice(start, n)
+                start, frames = n, 0
+            frames += size
+        if start < len(pairs):
+            yield slice(start, len(pairs))
+
+    def _evaluate(self, posed: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
+                  pairs: Sequence[MotionPair], start: int) -> list[dict[str, float]]:
+        """:func:`evaluate_pairs` of one chunk; a bad pair is named by its clip and its place in the whole call."""
+        try:
+            return evaluate_pairs(posed, config=self.config)
+        except ValueError:
+            for n, (pred, ref) in enumerate(posed):
+                try:
+                    _validated(pred, ref, start + n, self.config)
+                except ValueError as exc:
+                    raise ValueError(f"clip {pairs[n].clip_id!r}: {exc}") from exc
+            raise
+
     def score(self, pairs: Sequence[MotionPair], progress: bool = False) -> MotionScores:
-        """Score every pair (order kept in ``per_clip``); a bad pair raises ``ValueError`` naming it."""
-        shown = [p.prediction if _frames(p.prediction) > 0 else self.rest_pose() for p in pairs]
-        return score_point_pairs([PointPair(p.clip_id, p.group, _frames(p.prediction), self.points(s, p.identity),
-                                            self._reference_points(p)) for p, s in zip(pairs, shown)],
-                                 progress, self.config)
+        """Score every pair (order kept in ``per_clip``); a bad pair raises ``ValueError`` naming it, a clip with
+        neither a stored nor a given reference ``KeyError``, both before any later pair is posed."""
+        pairs = list(pairs)
+        unknown = [p.clip_id for p in pairs if p.reference is None and p.clip_id not in self._references]
+        if unknown:
+            raise KeyError(f"clip {unknown[0]!r}: no reference; store it with MotionScorer.reference(clip_id, "
+                           "params, identity) or give the pair its reference params"
+                           + (f" ({len(unknown)} clips lack one)" if len(unknown) > 1 else ""))
+        needed = {p.clip_id for p in pairs if p.reference is None}
+        rest = self.rest_pose() if any(_frames(p.prediction) == 0 for p in pairs) else {}
+        metrics: list[dict[str, float]] = []
+        with tqdm(total=len(pairs), desc="dtw", unit="pair", disable=not progress) as bar:
+            for chunk in self._chunks(pairs):
+                posed = [(self._pose(p.prediction if _frames(p.prediction) > 0 else rest, p.identity),
+                          self._reference_points(p, needed)) for p in pairs[chunk]]
+                metrics += self._evaluate(posed, pairs[chunk], chunk.start)
+                bar.update(len(posed))
+        return MotionScores.of([ClipScore(p.clip_id, p.group, _frames(p.prediction), m)
+                                for p, m in zip(pairs, metrics)])
 
 
 @dataclass(frozen=True)
@@ -143,13 +286,4 @@ def score_point_pairs(pairs: Sequence[PointPair], progress: bool = False,
                       config: MotionMetricsConfig = MotionMetricsConfig()) -> MotionScores:
     """The scores of posed pairs (skeleton models score here directly; :class:`MotionScorer` poses first)."""
     results = evaluate_pairs([(p.prediction, p.reference) for p in pairs], progress, config)
-    per_clip = [ClipScore(p.clip_id, p.group, p.frames, r) for p, r in zip(pairs, results)]
-    by_group: dict[str, list[dict[str, float]]] = defaultdict(list)
-    for clip in per_clip:
-        by_group[clip.group].append(clip.metrics)
-    return MotionScores(
-        per_clip=per_clip,
-        overall=summarise([c.metrics for c in per_clip]) if per_clip else {},
-        groups={group: summarise(metrics) for group, metrics in by_group.items()},
-        empty_rate=float(np.mean([c.frames == 0 for c in per_clip])) if per_clip else 0.0,
-    )
+    return MotionScores.of([ClipScore(p.clip_id, p.group, p.frames, r) for p, r in zip(pairs, results)])

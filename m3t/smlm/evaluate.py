@@ -10,14 +10,14 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 """
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Iterator, Sequence
 
 import numpy as np
 
 from m3t.body.protocol import BodyModel
 from m3t.metrics.motion import MotionMetricsConfig
-from m3t.metrics.scorer import MotionPair, MotionScorer, MotionScores
+from m3t.metrics.scorer import REFERENCE_FRAMES, MotionPair, MotionScorer, MotionScores
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
 from m3t.smlm.data import Example
@@ -61,11 +61,13 @@ def score_against(scorer: MotionScorer, references: Sequence[FittedClip],
 
 
 class SMLMEvaluator:
-    """Holds the evaluation clips, their reference metric points and the frozen tokenizers."""
+    """Holds the evaluation clips, their references (registered with the scorer, posed when scored and cached
+    within ``frame_budget`` frames: :class:`m3t.metrics.scorer.MotionScorer`) and the frozen tokenizers."""
 
     def __init__(self, body: BodyModel, tokenizers: dict[str, MotionTokenizer], vocab: SignVocabulary,
                  examples: Sequence[Example], references: dict[str, FittedClip], batch_size: int = 16,
-                 max_clips: int = 0, translation: bool = True, motion: MotionMetricsConfig = MotionMetricsConfig()):
+                 max_clips: int = 0, translation: bool = True, motion: MotionMetricsConfig = MotionMetricsConfig(),
+                 frame_budget: int = REFERENCE_FRAMES):
         missing = [e.clip_id for e in examples if e.clip_id not in references]
         if missing:
             raise KeyError(f"no fitted motion for clips {missing[:5]} (of {len(missing)}); the token shards and the "
@@ -74,8 +76,9 @@ class SMLMEvaluator:
         self.examples = list(examples)[: max_clips] if max_clips > 0 else list(examples)
         self.references = {e.clip_id: references[e.clip_id] for e in self.examples}
         self.batch_size, self.translation = batch_size, translation
-        self.scorer = MotionScorer(body, motion)  # motion.mode "soke_exact": SOKE's body rooting (SMPL-FX only)
-        for cid, ref in self.references.items():  # posed once, reused at every evaluation
+        # motion.mode "soke_exact": SOKE's body rooting (SMPL-FX only)
+        self.scorer = MotionScorer(body, motion, frame_budget)
+        for cid, ref in self.references.items():  # posed at the first evaluation; reused while the budget holds them
             self.scorer.reference(cid, ref.params, ref.identity)
 
     def points(self, params: dict[str, np.ndarray], identity: np.ndarray) -> dict[str, np.ndarray]:
