@@ -116,9 +116,7 @@ class SMLMEvaluator:
         if lost:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
         steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
-        # EOS at the first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted
-        scores = self.score_motion({e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {}
-                                    for e in self.examples})
+        scores = self.score_generated(generated, steps)
         rows = [{"clip_id": c.clip_id, "group": c.group, "steps": steps[c.clip_id],
                  "stopped": float(generated[c.clip_id].stopped), **c.metrics} for c in scores.per_clip]
         summary = dict(scores.overall)
@@ -136,6 +134,24 @@ class SMLMEvaluator:
                 [translations[e.clip_id] for e in self.examples], [e.text for e in self.examples],
                 [e.language for e in self.examples]))
         return report
+
+    def score_generated(self, generated: dict[str, GeneratedMotion], steps: dict[str, int]) -> MotionScores:
+        """Decode and score the generations in runs of examples whose frames stay within the scorer's budget (a
+        longer clip alone): decoded parameters never outlive their run, whatever the number of clips. EOS at the
+        first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted."""
+        down = next(iter(self.tokenizers.values())).cfg.downsample
+        cost = [steps[e.clip_id] * down + self.references[e.clip_id].num_frames for e in self.examples]
+        per_clip, start = [], 0
+        while start < len(self.examples):
+            end, frames = start + 1, cost[start]
+            while end < len(self.examples) and frames + cost[end] <= self.scorer.frame_budget:
+                frames += cost[end]
+                end += 1
+            run = self.examples[start:end]
+            motion = {e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {} for e in run}
+            per_clip += score_against(self.scorer, [self.references[e.clip_id] for e in run], motion).per_clip
+            start = end
+        return MotionScores.of(per_clip)
 
     def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
         """Parameters of every evaluation clip against its reference (:func:`score_against`)."""

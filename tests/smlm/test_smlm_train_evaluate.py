@@ -267,14 +267,17 @@ def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evalua
     from m3t.smlm.vocab import MOTION_STREAMS
 
     class RecordingScorer:
+        frame_budget = 10 ** 9  # every clip in one call (the runs the evaluator makes under a budget: below)
+
         def __init__(self):
             self.calls = []
 
         def score(self, pairs):
             self.calls.append(list(pairs))
+            rank = {"ASL0": 1, "ASL1": 2, "ASL2": 3, "CSL0": 4}  # a clip's figures do not depend on its run
             per_clip = [ClipScore(p.clip_id, p.group, len(next(iter(p.prediction.values()), [])),
-                                  {"dtw_jpe_body_m": 0.1 * (k + 1), "dtw_jpe_hand_m": 0.02 * (k + 1)})
-                        for k, p in enumerate(pairs)]
+                                  {"dtw_jpe_body_m": 0.1 * rank[p.clip_id], "dtw_jpe_hand_m": 0.02 * rank[p.clip_id]})
+                        for p in pairs]
             if not pairs:
                 return MotionScores([], {}, {}, 0.0)
             overall = {"dtw_jpe_body_m": 0.25, "dtw_jpe_hand_m": 0.05}
@@ -324,10 +327,15 @@ def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evalua
         "dtw_jpe_body_m": 0.25, "dtw_jpe_hand_m": 0.05,
         "stopped_rate": 0.5, "empty_rate": 0.25, "mean_steps": 1.5,
         SELECTION_METRIC: pytest.approx(0.15),  # the mean of body and hand DTW-JPE
-        "synthetic/ASL/dtw_jpe_body_m": 0.2, "synthetic/CSL/dtw_jpe_body_m": 0.4,
+        "synthetic/ASL/dtw_jpe_body_m": pytest.approx(0.2), "synthetic/ASL/dtw_jpe_hand_m": pytest.approx(0.04),
+        "synthetic/CSL/dtw_jpe_body_m": 0.4, "synthetic/CSL/dtw_jpe_hand_m": 0.08,
         **text_metrics,
     }
     assert report.generated is generated and report.translations == translations
+    # a budget below every clip: each clip decoded and scored in a run of its own, the same report
+    scorer.frame_budget, scorer.calls = 1, []
+    assert evaluator.score(generated, translations).summary == report.summary
+    assert [[p.clip_id for p in call] for call in scorer.calls] == [[e.clip_id] for e in examples]
 
     # the remaining checks are about translations and lookups: a stand-in decoder keeps them quick
     monkeypatch.setattr(evaluator, "motion_params", lambda g: {"body": np.zeros((4 * len(g.tokens["body"]), 1))})
@@ -342,7 +350,7 @@ def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evalua
 
     monkeypatch.setattr(evaluator, "examples", [])  # no evaluation clip at all: rates of 0, never selected
     nothing = evaluator.score({}, {})
-    assert nothing.per_clip == [] and scorer.calls[-1] == []
+    assert nothing.per_clip == []
     assert {k: v for k, v in nothing.summary.items() if not k.startswith("translation")} == {
         "stopped_rate": 0.0, "empty_rate": 0.0, "mean_steps": 0.0, SELECTION_METRIC: float("inf")}
 
