@@ -212,12 +212,19 @@ def load_models(models_dir: str | Path, device: str = "cpu") -> dict[str, Loaded
     return models
 
 
-def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, Mapping[str, np.ndarray]]],
+ClipParams = Mapping[str, np.ndarray] | Callable[[], Mapping[str, np.ndarray]]
+"""A clip's {modality: (T, D) parameters}, or what makes them when they are needed (decoded generations)."""
+BLOCK_BATCHES = 8  # decoding batches whose inputs are made at once: memory stays flat in the number of clips
+
+
+def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, ClipParams]],
                   references: Mapping[str, str], beam_size: int = 1, length_penalty: float = 1.0,
                   device: str = "cpu", batch_size: int = 16, progress: bool = False) -> BackTranslationReport:
-    """Back-translate ``clips_params`` (clip id -> (sign language, {modality: (T, D) parameters})) with the
-    language's model of ``models_dir`` and score them against ``references`` (clip id -> spoken sentence),
-    tokenised by the model's text rule, under definition "slt". T = 0 is the empty sentence (scored 0)."""
+    """Back-translate ``clips_params`` (clip id -> (sign language, {modality: (T, D) parameters} or a callable
+    giving them)) with the language's model of ``models_dir`` and score them against ``references`` (clip id ->
+    spoken sentence), tokenised by the model's text rule, under definition "slt". T = 0 is the empty sentence
+    (scored 0). Inputs are made for ``BLOCK_BATCHES`` decoding batches at a time, cut where the decoder's own
+    batches end, so the sentences are those of one call over every clip."""
     missing = [cid for cid in clips_params if cid not in references]
     if missing:
         raise ValueError(f"no reference sentence for clips {missing[:5]}{' ...' if len(missing) > 5 else ''}")
@@ -237,11 +244,17 @@ def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, 
         rows = [cid for cid in ids if clips_params[cid][0] == language]
         if not rows:
             continue
-        inputs = [loaded.spec.features(clips_params[cid][1], cid) for cid in rows]
-        sentences = translate(loaded.model, loaded.text_vocab, loaded.processor, inputs, beam_size, length_penalty,
-                              batch_size)
-        for cid, x, sentence in zip(rows, inputs, sentences):
-            hypotheses[cid], refs[cid], frames[cid] = sentence, loaded.processor.reference(references[cid]), len(x)
+        block: list[tuple[str, np.ndarray]] = []
+        for k, cid in enumerate(rows):
+            params = clips_params[cid][1]
+            block.append((cid, loaded.spec.features(params() if callable(params) else params, cid)))
+            if k + 1 < len(rows) and sum(len(x) > 0 for _, x in block) < BLOCK_BATCHES * batch_size:
+                continue
+            sentences = translate(loaded.model, loaded.text_vocab, loaded.processor, [x for _, x in block],
+                                  beam_size, length_penalty, batch_size)
+            for (cid_, x), sentence in zip(block, sentences):
+                hypotheses[cid_], refs[cid_], frames[cid_] = sentence, loaded.processor.reference(references[cid_]), len(x)
+            block = []
     languages = [clips_params[cid][0] for cid in ids]
     summary = slt_metrics_by_language([hypotheses[c] for c in ids], [refs[c] for c in ids], languages)
     per_clip = []

@@ -92,13 +92,14 @@ def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, Gener
 def backtranslate_motion(references: Sequence[FittedClip], motion_of: Callable[[str], dict[str, np.ndarray]],
                          data: DataConfig, body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
     """Any system's parameters of every sentence clip of ``references`` (``motion_of(clip id)``; ``{}``: no motion,
-    the empty sentence) through the frozen judge of its language, as :func:`backtranslate_generated`."""
+    the empty sentence) through the frozen judge of its language, as :func:`backtranslate_generated`. A clip's
+    motion is made when the judge reaches it, not all at once."""
     empty = {name: np.zeros((0, dim), np.float32) for name, dim in body.layout.dims.items()}
     clips, texts = {}, {}
     for ref in references:
         if skip_reason(ref.clip, ref.num_frames) is not None:
             continue
-        clips[ref.clip.id] = (ref.clip.language, motion_of(ref.clip.id) or empty)
+        clips[ref.clip.id] = (ref.clip.language, lambda cid=ref.clip.id: motion_of(cid) or empty)
         texts[ref.clip.id] = ref.clip.text
     if not clips:
         return None

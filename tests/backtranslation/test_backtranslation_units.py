@@ -255,6 +255,42 @@ def test_train_language_reports_its_numbers_and_description_and_copies_the_best_
     assert calls[-1][4] is True
 
 
+def test_backtranslate_makes_inputs_a_block_of_batches_at_a_time(monkeypatch):
+    """Inputs are made when their block is reached (callables called then, not up front) and every block ends
+    where the decoder's batches end (empty clips are not in its batches): the same batches, hence the same
+    sentences, as one call over every clip."""
+    from m3t.backtranslation import pipeline
+    from m3t.backtranslation.text import TextProcessor
+
+    spec = SimpleNamespace(features=lambda params, cid: np.asarray(params["x"], np.float32))
+    models = {"ASL": SimpleNamespace(spec=spec, model="m", text_vocab="v", processor=TextProcessor.for_language("ASL"))}
+    monkeypatch.setattr(pipeline, "load_models", lambda folder, device: models)
+    batches, made = [], []
+
+    def fake_translate(model, vocab, processor, inputs, beam, alpha, batch):
+        todo = [i for i, x in enumerate(inputs) if len(x)]
+        batches.extend([len(inputs[i]) for i in todo[k: k + batch]] for k in range(0, len(todo), batch))
+        return [f"w{len(x)}" if len(x) else "" for x in inputs]
+
+    monkeypatch.setattr(pipeline, "translate", fake_translate)
+    lengths = [3, 0, 4, 5, 0, 0, 6, 7, 8, 0, 9]  # 0: an empty generation
+
+    def run(block_batches):
+        monkeypatch.setattr(pipeline, "BLOCK_BATCHES", block_batches)
+        batches.clear()
+        clips = {f"c{i}": ("ASL", lambda n=n, i=i: made.append(i) or {"x": np.zeros((n, 1))})
+                 for i, n in enumerate(lengths)}
+        report = pipeline.backtranslate("models", clips, {c: "w" for c in clips}, batch_size=2)
+        return report, list(batches)
+
+    whole, whole_batches = run(100)
+    made.clear()
+    blocked, blocked_batches = run(1)
+    assert made == list(range(len(lengths))), "each clip's motion is made once, in order"
+    assert blocked_batches == whole_batches == [[3, 4], [5, 6], [7, 8], [9]]
+    assert blocked.hypotheses == whole.hypotheses and blocked.per_clip == whole.per_clip
+
+
 def test_backtranslate_scores_each_clip_with_its_languages_model(monkeypatch):
     """Clips go to their language's model in batches of that language only (in clip order); the references are
     scored as the model's text rule writes them; per-clip rows carry the columns of per_clip.csv; every
