@@ -38,6 +38,7 @@ from m3t.backtranslation.train import run_key, train_backtranslation
 from m3t.body.protocol import BodyModel
 from m3t.body.skeleton import SkeletonGraph
 from m3t.experiment import ExperimentConfig, section_params, start_run
+from m3t.journal import Journal
 from m3t.metrics.text import SLT_DEFINITION, slt_metrics_by_language, slt_scores, slt_unit
 from m3t.reporting import csv_text
 from m3t.shards.folders import DataConfig
@@ -214,17 +215,21 @@ def load_models(models_dir: str | Path, device: str = "cpu") -> dict[str, Loaded
 
 ClipParams = Mapping[str, np.ndarray] | Callable[[], Mapping[str, np.ndarray]]
 """A clip's {modality: (T, D) parameters}, or what makes them when they are needed (decoded generations)."""
+JOURNAL_SECTION = "backtranslation"  # the sentences of a resumable evaluation (m3t.journal)
 BLOCK_BATCHES = 8  # decoding batches whose inputs are made at once: memory stays flat in the number of clips
 
 
 def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, ClipParams]],
                   references: Mapping[str, str], beam_size: int = 1, length_penalty: float = 1.0,
-                  device: str = "cpu", batch_size: int = 16, progress: bool = False) -> BackTranslationReport:
+                  device: str = "cpu", batch_size: int = 16, progress: bool = False,
+                  journal: Journal | None = None) -> BackTranslationReport:
     """Back-translate ``clips_params`` (clip id -> (sign language, {modality: (T, D) parameters} or a callable
     giving them)) with the language's model of ``models_dir`` and score them against ``references`` (clip id ->
     spoken sentence), tokenised by the model's text rule, under definition "slt". T = 0 is the empty sentence
     (scored 0). Inputs are made for ``BLOCK_BATCHES`` decoding batches at a time, cut where the decoder's own
-    batches end, so the sentences are those of one call over every clip."""
+    batches end, so the sentences are those of one call over every clip. With a ``journal`` (:mod:`m3t.journal`)
+    each block's sentences are added to it once made, and the blocks it holds are not made again: they are whole
+    blocks from a language's first clip on, so the blocks left start where the decoder's batches would."""
     missing = [cid for cid in clips_params if cid not in references]
     if missing:
         raise ValueError(f"no reference sentence for clips {missing[:5]}{' ...' if len(missing) > 5 else ''}")
@@ -244,6 +249,12 @@ def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, 
         rows = [cid for cid in ids if clips_params[cid][0] == language]
         if not rows:
             continue
+        done = journal.done(JOURNAL_SECTION) if journal is not None else {}
+        for cid in rows:
+            if cid in done:
+                hypotheses[cid], frames[cid] = done[cid]["hypothesis"], done[cid]["frames"]
+                refs[cid] = loaded.processor.reference(references[cid])
+        rows = [cid for cid in rows if cid not in done]
         block: list[tuple[str, np.ndarray]] = []
         for k, cid in enumerate(rows):
             params = clips_params[cid][1]
@@ -254,6 +265,9 @@ def backtranslate(models_dir: str | Path, clips_params: Mapping[str, tuple[str, 
                                   beam_size, length_penalty, batch_size)
             for (cid_, x), sentence in zip(block, sentences):
                 hypotheses[cid_], refs[cid_], frames[cid_] = sentence, loaded.processor.reference(references[cid_]), len(x)
+            if journal is not None:
+                journal.add(JOURNAL_SECTION, [{"clip_id": c, "hypothesis": hypotheses[c], "frames": frames[c]}
+                                              for c, _ in block])
             block = []
     languages = [clips_params[cid][0] for cid in ids]
     summary = slt_metrics_by_language([hypotheses[c] for c in ids], [refs[c] for c in ids], languages)

@@ -10,14 +10,22 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from m3t.body.protocol import BodyModel
+from m3t.journal import Journal
 from m3t.metrics.motion import MotionMetricsConfig
-from m3t.metrics.scorer import REFERENCE_FRAMES, MotionPair, MotionScorer, MotionScores
+from m3t.metrics.scorer import (
+    REFERENCE_FRAMES,
+    ClipScore,
+    MotionPair,
+    MotionScorer,
+    MotionScores,
+)
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
 from m3t.smlm.data import Example
@@ -27,6 +35,7 @@ from m3t.smlm.vocab import SignVocabulary
 from m3t.tokenizers.evaluate import decode_streams
 from m3t.tokenizers.vae import MotionTokenizer
 
+JOURNAL_SECTION = "dtw"  # the scored clips of a resumable evaluation (m3t.journal)
 SELECTION_METRIC = "dtw_jpe_mean_m"  # mean of body and hand DTW-JPE (raw), the checkpoint criterion
 
 
@@ -110,13 +119,15 @@ class SMLMEvaluator:
         """Generate (and translate) every evaluation clip with ``model``, then score."""
         return self.score(self.generate(model), self.translate(model) if self.translation else None)
 
-    def score(self, generated: dict[str, GeneratedMotion], translations: dict[str, str] | None = None) -> EvaluationReport:
-        """Score generated tokens (and translations) of the evaluation clips, e.g. read back from disk."""
+    def score(self, generated: dict[str, GeneratedMotion], translations: dict[str, str] | None = None,
+              journal: Journal | None = None) -> EvaluationReport:
+        """Score generated tokens (and translations) of the evaluation clips, e.g. read back from disk; with a
+        ``journal`` (:mod:`m3t.journal`), a killed scoring resumes (:meth:`score_generated`)."""
         lost = [e.clip_id for e in self.examples if e.clip_id not in generated]
         if lost:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
         steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
-        scores = self.score_generated(generated, steps)
+        scores = self.score_generated(generated, steps, journal)
         rows = [{"clip_id": c.clip_id, "group": c.group, "steps": steps[c.clip_id],
                  "stopped": float(generated[c.clip_id].stopped), **c.metrics} for c in scores.per_clip]
         summary = dict(scores.overall)
@@ -135,23 +146,32 @@ class SMLMEvaluator:
                 [e.language for e in self.examples]))
         return report
 
-    def score_generated(self, generated: dict[str, GeneratedMotion], steps: dict[str, int]) -> MotionScores:
+    def score_generated(self, generated: dict[str, GeneratedMotion], steps: dict[str, int],
+                        journal: Journal | None = None) -> MotionScores:
         """Decode and score the generations in runs of examples whose frames stay within the scorer's budget (a
         longer clip alone): decoded parameters never outlive their run, whatever the number of clips. EOS at the
-        first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted."""
+        first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted. With a
+        ``journal``, clips it holds are not scored again and every run is added to it once scored (a clip's
+        figures do not depend on its run)."""
+        done = journal.done(JOURNAL_SECTION) if journal is not None else {}
+        todo = [e for e in self.examples if e.clip_id not in done]
         down = next(iter(self.tokenizers.values())).cfg.downsample
-        cost = [steps[e.clip_id] * down + self.references[e.clip_id].num_frames for e in self.examples]
-        per_clip, start = [], 0
-        while start < len(self.examples):
+        cost = [steps[e.clip_id] * down + self.references[e.clip_id].num_frames for e in todo]
+        scored = {cid: ClipScore(**row["score"]) for cid, row in done.items()}
+        start = 0
+        while start < len(todo):
             end, frames = start + 1, cost[start]
-            while end < len(self.examples) and frames + cost[end] <= self.scorer.frame_budget:
+            while end < len(todo) and frames + cost[end] <= self.scorer.frame_budget:
                 frames += cost[end]
                 end += 1
-            run = self.examples[start:end]
+            run = todo[start:end]
             motion = {e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {} for e in run}
-            per_clip += score_against(self.scorer, [self.references[e.clip_id] for e in run], motion).per_clip
+            fresh = score_against(self.scorer, [self.references[e.clip_id] for e in run], motion).per_clip
+            if journal is not None:
+                journal.add(JOURNAL_SECTION, [{"clip_id": c.clip_id, "score": dataclasses.asdict(c)} for c in fresh])
+            scored.update((c.clip_id, c) for c in fresh)
             start = end
-        return MotionScores.of(per_clip)
+        return MotionScores.of([scored[e.clip_id] for e in self.examples])
 
     def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
         """Parameters of every evaluation clip against its reference (:func:`score_against`)."""

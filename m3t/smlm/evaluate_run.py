@@ -8,11 +8,16 @@
   Every clip of the split is scored: one over the model's text / motion limits is cut to them and kept
   (``clips_cut``), an empty generation is scored as the rest pose (``empty_rate``) and back-translates to the
   empty sentence; only clips the vocabulary cannot take at all are left out (``clips_unscorable``).
+  Memory does not grow with the split: generations are decoded for a run of clips within the scorer's frame
+  budget, or a block of the judge's batches, and dropped after it. A killed evaluation resumes: scored clips and
+  judged sentences are journaled beside the metrics as they are made (:mod:`m3t.journal`, removed once the
+  outputs are written), and the rerun writes what an uninterrupted run writes.
 """
 from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -26,7 +31,9 @@ from m3t.backtranslation.pipeline import (
 )
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
+from m3t.digest import file_digest, json_digest
 from m3t.experiment import ExperimentConfig, start_run
+from m3t.journal import Journal
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.reporting import frame_csv
 from m3t.shards.folders import DataConfig
@@ -39,6 +46,9 @@ from m3t.smlm.evaluate import EvaluationReport, SMLMEvaluator
 from m3t.smlm.generate import GeneratedMotion
 from m3t.smlm.generate_run import evaluator_for
 from m3t.smlm.pipeline import variant_name
+
+JOURNAL_NAME = ".evaluate-smlm.journal"  # beside the metrics while a run is in progress (m3t.journal)
+JOURNAL_VERSION = "evaluate-smlm-journal-v1"  # bump when what a journaled row holds changes
 
 
 def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
@@ -62,35 +72,49 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
             translations[row["clip_id"]] = row["hypothesis"]
         except (json.JSONDecodeError, KeyError) as exc:
             raise ValueError(f"{text_path}, line {line_no}: not a translation record ({exc}); rerun generate-smlm") from exc
-    report = evaluator.score(generated, translations)
     metrics_dir = data.metrics("smlm")
+    judge = judge or BackTranslationConfig()
+    journal = Journal(metrics_dir / JOURNAL_NAME, evaluation_key(cfg, data, judge, [shard_path, text_path]))
+    report = evaluator.score(generated, translations, journal)
     # every clip of the split is scored: clips over the model's limits were cut and kept; only clips the
     # vocabulary cannot take at all (a language without prompts, no text) are left out, and counted here
     report.summary.update({"clips_scored": float(len(evaluator.examples)), "clips_cut": float(len(setup.cut)),
                            "clips_unscorable": float(len(setup.skipped))})
     if cfg.backtranslate:
-        judged = backtranslate_generated(evaluator, generated, data, body, judge or BackTranslationConfig())
+        judged = backtranslate_generated(evaluator, generated, data, body, judge, journal)
         report.summary["bt/clips"] = float(0 if judged is None else len(judged.per_clip))
         if judged is not None:  # None: the split has no sentence clip (isolated signs only)
             report.summary.update({f"bt/{k}": v for k, v in judged.summary.items()})
             write_text(metrics_dir / "backtranslation.csv", per_clip_csv(judged.per_clip))
     write_json(metrics_dir / "metrics.json", report.summary)
     write_text(metrics_dir / "per_clip.csv", frame_csv(report.per_clip))
+    journal.finish()
     return report, loaded.train_config
 
 
+def evaluation_key(cfg: GenerateConfig, data: DataConfig, judge: BackTranslationConfig, inputs: list[Path]) -> str:
+    """What an evaluation's per-clip results depend on (its journal's key): the generation's files, the
+    checkpoint, the reference shards, the tokenizers, the judges and the settings that score."""
+    files = [*inputs, data.smlm_dir / "smlm.pt", *(folder / f"{cfg.split}.parquet" for folder in data.shards_dirs),
+             *sorted(data.tokenizers_dir.glob("*.pt")), *sorted(data.backtranslation_dir.glob("*"))]
+    return json_digest([JOURNAL_VERSION, cfg.split, cfg.motion_metric, cfg.backtranslate, judge.beam_size,
+                        judge.length_penalty, [(p.name, file_digest(p)) for p in files if p.is_file()]], length=16)
+
+
 def backtranslate_generated(evaluator: SMLMEvaluator, generated: dict[str, GeneratedMotion], data: DataConfig,
-                            body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
+                            body: BodyModel, judge: BackTranslationConfig,
+                            journal: Journal | None = None) -> BackTranslationReport | None:
     """The generated motion of every sentence clip (decoded by the frozen tokenizers) through the frozen
     back-translation judge of its language (definition "slt"); an empty generation is the empty sentence.
     Isolated signs are left to the recognition probe; None when the split has no sentence clip."""
     return backtranslate_motion([evaluator.references[e.clip_id] for e in evaluator.examples],
                                 lambda cid: evaluator.motion_params(generated[cid])
-                                if len(generated[cid].tokens["body"]) else {}, data, body, judge)
+                                if len(generated[cid].tokens["body"]) else {}, data, body, judge, journal)
 
 
 def backtranslate_motion(references: Sequence[FittedClip], motion_of: Callable[[str], dict[str, np.ndarray]],
-                         data: DataConfig, body: BodyModel, judge: BackTranslationConfig) -> BackTranslationReport | None:
+                         data: DataConfig, body: BodyModel, judge: BackTranslationConfig,
+                         journal: Journal | None = None) -> BackTranslationReport | None:
     """Any system's parameters of every sentence clip of ``references`` (``motion_of(clip id)``; ``{}``: no motion,
     the empty sentence) through the frozen judge of its language, as :func:`backtranslate_generated`. A clip's
     motion is made when the judge reaches it, not all at once."""
@@ -103,7 +127,8 @@ def backtranslate_motion(references: Sequence[FittedClip], motion_of: Callable[[
         texts[ref.clip.id] = ref.clip.text
     if not clips:
         return None
-    return backtranslate(data.backtranslation_dir, clips, texts, judge.beam_size, judge.length_penalty)
+    return backtranslate(data.backtranslation_dir, clips, texts, judge.beam_size, judge.length_penalty,
+                         journal=journal)
 
 
 def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, experiment: ExperimentConfig,

@@ -255,7 +255,7 @@ def test_train_language_reports_its_numbers_and_description_and_copies_the_best_
     assert calls[-1][4] is True
 
 
-def test_backtranslate_makes_inputs_a_block_of_batches_at_a_time(monkeypatch):
+def test_backtranslate_makes_inputs_a_block_of_batches_at_a_time(monkeypatch, tmp_path):
     """Inputs are made when their block is reached (callables called then, not up front) and every block ends
     where the decoder's batches end (empty clips are not in its batches): the same batches, hence the same
     sentences, as one call over every clip."""
@@ -289,6 +289,21 @@ def test_backtranslate_makes_inputs_a_block_of_batches_at_a_time(monkeypatch):
     assert made == list(range(len(lengths))), "each clip's motion is made once, in order"
     assert blocked_batches == whole_batches == [[3, 4], [5, 6], [7, 8], [9]]
     assert blocked.hypotheses == whole.hypotheses and blocked.per_clip == whole.per_clip
+
+    # killed after its first block: the journal's blocks are not made again, the rest start on a batch boundary
+    from m3t.journal import Journal
+
+    full = Journal(tmp_path / "full.journal", "k")
+    monkeypatch.setattr(pipeline, "BLOCK_BATCHES", 1)
+    clips = {f"c{i}": ("ASL", lambda n=n: {"x": np.zeros((n, 1))}) for i, n in enumerate(lengths)}
+    pipeline.backtranslate("models", clips, {c: "w" for c in clips}, batch_size=2, journal=full)
+    first_block = ["c0", "c1", "c2"]  # two non-empty clips: one batch
+    killed = Journal(tmp_path / "killed.journal", "k")
+    killed.add(pipeline.JOURNAL_SECTION, [full.done(pipeline.JOURNAL_SECTION)[c] for c in first_block])
+    batches.clear()
+    resumed = pipeline.backtranslate("models", clips, {c: "w" for c in clips}, batch_size=2, journal=killed)
+    assert batches == [[5, 6], [7, 8], [9]]
+    assert resumed.hypotheses == whole.hypotheses and resumed.per_clip == whole.per_clip
 
 
 def test_backtranslate_scores_each_clip_with_its_languages_model(monkeypatch):

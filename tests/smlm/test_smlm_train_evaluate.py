@@ -256,7 +256,8 @@ def test_evaluator_generates_every_clip_in_batches_and_shows_progress_only_when_
     assert all(np.array_equal(again[c].tokens["body"], generated[c].tokens["body"]) for c in generated)
 
 
-def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evaluator, smlm_parts, monkeypatch):
+def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evaluator, smlm_parts, monkeypatch,
+                                                                         tmp_path):
     """The evaluator's part of scoring: what it hands the motion scorer (decoded predictions, the rest pose for an
     empty one, groups, identities) and the rows and summary it builds from the scores (the scorer's own numbers
     are pinned in tests/metrics/test_scorer.py; here a recording stand-in returns known ones)."""
@@ -336,6 +337,18 @@ def test_evaluator_scores_generated_tokens_per_clip_overall_and_per_group(evalua
     scorer.frame_budget, scorer.calls = 1, []
     assert evaluator.score(generated, translations).summary == report.summary
     assert [[p.clip_id for p in call] for call in scorer.calls] == [[e.clip_id] for e in examples]
+    # a killed scoring resumes from its journal: the clips it holds are not scored again, the same report
+    from m3t.journal import Journal
+    from m3t.smlm.evaluate import JOURNAL_SECTION
+
+    full = Journal(tmp_path / "full.journal", "k")
+    evaluator.score(generated, translations, full)
+    killed = Journal(tmp_path / "killed.journal", "k")
+    killed.add(JOURNAL_SECTION, [full.done(JOURNAL_SECTION)[c] for c in ("ASL0", "ASL1")])
+    scorer.calls = []
+    assert evaluator.score(generated, translations, Journal(tmp_path / "killed.journal", "k")).summary == report.summary
+    assert [[p.clip_id for p in call] for call in scorer.calls] == [["ASL2"], ["CSL0"]]
+    assert sorted(Journal(tmp_path / "killed.journal", "k").done(JOURNAL_SECTION)) == ["ASL0", "ASL1", "ASL2", "CSL0"]
 
     # the remaining checks are about translations and lookups: a stand-in decoder keeps them quick
     monkeypatch.setattr(evaluator, "motion_params", lambda g: {"body": np.zeros((4 * len(g.tokens["body"]), 1))})
