@@ -4,7 +4,9 @@ Every clip of every split of each corpus in ``data.train_corpora`` is encoded by
 tokenizers (left hands mirrored into right hands for the shared hand tokenizer), giving four time-aligned
 streams per clip, written to ``<tokens_root>/<corpus>/<split>.parquet``. A clip that cannot be tokenised
 (non-finite parameters, a stream missing) is listed in that corpus' ``rejected.jsonl`` with its reason and
-the others go on. Clips shorter than one token window are edge-padded to one token.
+the others go on. Clips shorter than one token window are edge-padded to one token. The fitted clips are
+streamed one shard row group at a time (:func:`m3t.shards.io.iter_split`); only the token clips, a few integers
+per frame window, are kept until their shard is written.
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from m3t.atomic import write_json, write_jsonl
 from m3t.corpora.splits import SPLITS
 from m3t.digest import file_digest
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import read_split
+from m3t.shards.io import iter_split
 from m3t.shards.tokens import TokenClip, TokenInfo, write_token_shard
 from m3t.tokenizers.checkpoint import load_tokenizer
 from m3t.tokenizers.data import GROUPS, STREAMS, clip_sequences
@@ -54,7 +56,7 @@ def tokenize_corpus(models: dict[str, MotionTokenizer], info: TokenInfo, shards_
     rejected, summary = [], {}
     for split in SPLITS:
         clips = []
-        for fitted in read_split(shards_dir, split):
+        for fitted in iter_split(shards_dir, split):
             try:
                 clips.append(tokenize_clip(models, fitted))
             except (ValueError, KeyError) as exc:
