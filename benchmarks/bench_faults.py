@@ -10,7 +10,10 @@ duration, reruns it to completion and checks:
   checkpoints, ``state_dict`` tensor by tensor on the CPU);
 - no temporary, partial or lock file is left anywhere in the job's folders, and no process of the killed group;
 - fit-corpus: no clip finished before the kill is fitted again (its part file is untouched) and exactly the
-  others are fitted on the rerun.
+  others are fitted on the rerun;
+- evaluate-smlm (on a generation of the whole tiny corpus's test split, models of its own): the rerun resumes
+  from the journal of scored clips and judged sentences (``state_at_kill``), and writes the reference's metrics
+  byte for byte; the journal is gone afterwards.
 
 Time lost per resume = rerun time - (reference time - time before the kill): the work redone plus the restart.
 Then one trial each of: a corrupt cached part file (refitted, not read), two runs of one stage at once (the
@@ -18,7 +21,7 @@ second refused, naming the first's pid), a disk full during a shard write (simul
 shard intact, no temporary file, an error naming the file).
 
     python benchmarks/bench_faults.py [--kills 5] [--clips 6] [--seed 0] [--out benchmarks/results/faults.json]
-        [--jobs fit-corpus,fit-corpus-dask,tokenizers,smlm,backtranslation,slr,sgsa]
+        [--jobs fit-corpus,fit-corpus-dask,tokenizers,smlm,backtranslation,slr,sgsa,evaluate-smlm]
 
 Writes the JSON and a Markdown table beside it (``faults.md``). Jobs run one after the other; the fit-corpus
 reference feeds the trainers (its shards), and the tokenizer reference feeds the SMLM (through ``tokenize``) and
@@ -42,11 +45,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-JOBS = ("fit-corpus", "fit-corpus-dask", "tokenizers", "smlm", "backtranslation", "slr", "sgsa")
+JOBS = ("fit-corpus", "fit-corpus-dask", "tokenizers", "smlm", "backtranslation", "slr", "sgsa", "evaluate-smlm")
 TRAINERS = ("tokenizers", "smlm", "backtranslation", "slr", "sgsa")  # they read the fitted shards
 # these need the whole tiny corpus (sentences for the judge and SGSA, isolated signs in every split for the probe),
 # fitted into shards of their own; the others train on the first --clips clips
 WHOLE_CORPUS = ("backtranslation", "slr", "sgsa")
+# evaluate-smlm scores a generation of the whole tiny corpus's test split with models of its own (folders "eval")
+EVALUATION_SETUP = ("train_tokenizers", "tokenize", "train_smlm", "train_backtranslation", "generate_smlm")
 
 
 @dataclass(frozen=True)
@@ -88,9 +93,13 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
                       "tokens_root": str(root / "tokens-all")},
              "fit_corpus": {"max_clips": 0, "cache_dir": str(root / "fit-cache-all")}}  # its own: the part trials
                                                                                      # pick from the 6-clip cache
+    evaluation = {"data": {**whole["data"], "models_dir": str(root / "models-eval"), "generated_dir": str(root / "gen-eval"),
+                           "metrics_dir": str(root / "metrics-eval")},
+                  "fit_corpus": whole["fit_corpus"], "smlm_generate": {"render_clips": 0, "export_pose": False}}
     for name, extra in (("local", {}), ("dask", {"fit_corpus": {"executor": "dask", "workers": 2}}),
-                        ("slow", {"fitting": {"iterations": 150, "camera_iterations": 30}}), ("all", whole)):
-        over = {**overrides, **{k: {**overrides[k], **v} for k, v in extra.items()}}
+                        ("slow", {"fitting": {"iterations": 150, "camera_iterations": 30}}), ("all", whole),
+                        ("eval", evaluation)):
+        over = {**overrides, **{k: {**overrides.get(k, {}), **v} for k, v in extra.items()}}
         params = load_params(ROOT / "params.yaml", preset="tiny", overrides=over)
         files[name] = root / f"params-{name}.yaml"
         files[name].write_text(yaml.safe_dump(to_dict(params), sort_keys=False))
@@ -107,6 +116,8 @@ def workspace(root: Path, clips: int, iterations: int) -> dict[str, Job]:
                                (root / "bt-cache", models / "backtranslation"), (models / "backtranslation",)),
         "slr": Job("slr", "train_slr", files["all"], (root / "slr-cache", models / "slr"), (models / "slr",)),
         "sgsa": Job("sgsa", "train_sgsa", files["all"], (root / "sgsa-cache", models / "sgsa"), (models / "sgsa",)),
+        "evaluate-smlm": Job("evaluate-smlm", "evaluate_smlm", files["eval"], (root / "metrics-eval" / "smlm",),
+                             (root / "metrics-eval" / "smlm",)),
     }
 
 
@@ -245,7 +256,7 @@ def kill_trials(job: Job, kills: int, rng: random.Random, logs: Path, scratch: P
         ran, finished, alive = kill_after(job.stage, job.params, log, at)
         before = parts(job.state[0]) if job.stage == "fit_corpus" else {}
         # what the rerun can resume from: finished parts, or the trainer's resumable checkpoint
-        saved = [k for k, p in files_under((job.state[0],)).items() if not is_leftover(p)]
+        saved = [k for k, p in files_under((job.state[0],)).items() if not is_leftover(p) or p.suffix == ".journal"]
         rerun = run_to_end(job.stage, job.params, log)
         problems = compare(reference, job.outputs)
         problems += [f"left behind: {k}" for k in leftovers(job.state)]
@@ -421,6 +432,13 @@ def run(kills: int, jobs: list[str], clips: int, iterations: int, seed: int, roo
             run_to_end("train_tokenizers", source.params, logs / "tokenizers-for-trainers.log")
         if name == "smlm":
             run_to_end("tokenize", fit.params, logs / "tokenize.log")
+        if name == "evaluate-smlm":
+            whole = defined["fit-all"]
+            if not (whole.outputs[0] / "train.parquet").exists():
+                clear(whole)
+                run_to_end(whole.stage, whole.params, logs / "fit-all-for-evaluation.log")
+            for stage in EVALUATION_SETUP:
+                run_to_end(stage, defined[name].params, logs / f"{stage}-for-evaluation.log")
         result["jobs"][name] = kill_trials(defined[name], kills, rng, logs, scratch)
     if needs_fit:
         reference = files_under((scratch / "fit-corpus-reference" / "synthetic",)) if "fit-corpus" in jobs else None

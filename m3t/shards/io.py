@@ -458,6 +458,11 @@ def iter_split(shards_dirs: Sequence[str | os.PathLike] | str | os.PathLike, spl
     Every shard is checked to exist at the call (a missing one names the stage to run); a clip id found in two
     corpora is refused when it is reached (ids key every downstream join). Only the ids seen so far are kept.
     """
+    return _split_clips(split_shards(shards_dirs, split), modalities)
+
+
+def split_shards(shards_dirs: Sequence[str | os.PathLike] | str | os.PathLike, split: str) -> list[Path]:
+    """The shard files of ``split`` in one or several corpora's folders; a missing one names the stage to run."""
     dirs = [shards_dirs] if isinstance(shards_dirs, (str, os.PathLike)) else list(shards_dirs)
     paths = []
     for folder in dirs:
@@ -466,7 +471,7 @@ def iter_split(shards_dirs: Sequence[str | os.PathLike] | str | os.PathLike, spl
             raise FileNotFoundError(f"shard {path} not found; run the fit-corpus stage for that corpus first "
                                     f"(dvc repro, or python -m m3t.stages.fit_corpus --corpus {Path(folder).name})")
         paths.append(path)
-    return _split_clips(paths, modalities)
+    return paths
 
 
 def _split_clips(paths: list[Path], modalities: Sequence[str] | None) -> Iterator[FittedClip]:

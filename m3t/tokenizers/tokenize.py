@@ -5,11 +5,16 @@ tokenizers (left hands mirrored into right hands for the shared hand tokenizer),
 streams per clip, written to ``<tokens_root>/<corpus>/<split>.parquet``. A clip that cannot be tokenised
 (non-finite parameters, a stream missing) is listed in that corpus' ``rejected.jsonl`` with its reason and
 the others go on. Clips shorter than one token window are edge-padded to one token. The fitted clips are
-streamed one shard row group at a time (:func:`m3t.shards.io.iter_split`); only the token clips, a few integers
-per frame window, are kept until their shard is written.
+streamed one shard row group at a time (:func:`m3t.shards.io.iter_shard`); only the token clips, a few integers
+per frame window, are kept until their shard is written. With ``fit_corpus.executor: dask`` the row groups are
+tokenised on the Dask cluster fit-corpus uses (:func:`m3t.fitting.cluster.open_executor`; workers load the
+tokenizers from the same paths, one torch thread each), and the token shards are the same bytes.
 """
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Iterator
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +22,9 @@ import numpy as np
 from m3t.atomic import write_json, write_jsonl
 from m3t.corpora.splits import SPLITS
 from m3t.digest import file_digest
+from m3t.fitting.config import FitCorpusConfig
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import iter_split
+from m3t.shards.io import iter_shard, split_shards
 from m3t.shards.tokens import TokenClip, TokenInfo, write_token_shard
 from m3t.tokenizers.checkpoint import load_tokenizer
 from m3t.tokenizers.data import GROUPS, STREAMS, clip_sequences
@@ -50,17 +56,64 @@ def tokenize_clip(models: dict[str, MotionTokenizer], fitted) -> TokenClip:
     return TokenClip(fitted.clip, fitted.num_frames, {s.name: tokens[s.name] for s in STREAMS})
 
 
+def tokenize_clips(models: dict[str, MotionTokenizer], clips: list, split: str) -> tuple[list[TokenClip], list[dict]]:
+    """Fitted clips of one split -> their token clips, and the records of those that cannot be tokenised."""
+    tokens, rejected = [], []
+    for fitted in clips:
+        try:
+            tokens.append(tokenize_clip(models, fitted))
+        except (ValueError, KeyError) as exc:
+            rejected.append({"clip_id": fitted.clip.id, "split": split, "reason": f"{type(exc).__name__}: {exc}"})
+    return tokens, rejected
+
+
+def tokenize_on_worker(tokenizers_dir: str, digests: dict[str, str], clips: list,
+                       split: str) -> tuple[list[TokenClip], list[dict]]:
+    """:func:`tokenize_clips` on a worker: the tokenizers are loaded once per process, and must be the files the
+    run's own process loaded (``digests``)."""
+    models, info = _worker_tokenizers(tokenizers_dir)
+    if info.tokenizers != digests:
+        raise RuntimeError(f"the tokenizers in {tokenizers_dir} seen by this worker differ from those of the run "
+                           f"({info.tokenizers} vs {digests}); workers must see the run's files at the same paths")
+    return tokenize_clips(models, clips, split)
+
+
+@lru_cache(maxsize=2)
+def _worker_tokenizers(tokenizers_dir: str) -> tuple[dict[str, MotionTokenizer], TokenInfo]:
+    return load_tokenizers(tokenizers_dir)
+
+
+def _tokenized_groups(models: dict[str, MotionTokenizer], info: TokenInfo, tokenizers_dir: Path | None, shard: Path,
+                      split: str, executor) -> Iterator[tuple[list[TokenClip], list[dict]]]:
+    """Each row group of ``shard`` tokenised, in file order: here, or on ``executor``'s workers with at most its
+    capacity (two without one) of groups in flight."""
+    groups = iter_shard(shard)
+    if executor is None:
+        for group in groups:
+            yield tokenize_clips(models, list(group.clips), split)
+        return
+    in_flight = getattr(executor, "capacity", lambda: 2)()
+    pending: deque = deque()
+    for group in groups:
+        pending.append(executor.submit(tokenize_on_worker, str(tokenizers_dir), info.tokenizers, list(group.clips), split))
+        while len(pending) > in_flight:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
+
+
 def tokenize_corpus(models: dict[str, MotionTokenizer], info: TokenInfo, shards_dir: Path,
-                    out: Path) -> dict[str, float]:
-    """One corpus' splits -> token shards + ``rejected.jsonl`` + ``summary.json`` in ``out``."""
+                    out: Path, executor=None, tokenizers_dir: Path | None = None) -> dict[str, float]:
+    """One corpus' splits -> token shards + ``rejected.jsonl`` + ``summary.json`` in ``out``. Fitted clips are
+    read one row group at a time and only their (small) tokens are kept; ``executor`` (with the folder the
+    tokenizers came from): the groups are tokenised on its workers, the outputs are the same."""
     rejected, summary = [], {}
     for split in SPLITS:
+        (shard,) = split_shards(shards_dir, split)
         clips = []
-        for fitted in iter_split(shards_dir, split):
-            try:
-                clips.append(tokenize_clip(models, fitted))
-            except (ValueError, KeyError) as exc:
-                rejected.append({"clip_id": fitted.clip.id, "split": split, "reason": f"{type(exc).__name__}: {exc}"})
+        for tokens, lost in _tokenized_groups(models, info, tokenizers_dir, shard, split, executor):
+            clips += tokens
+            rejected += lost
         out.mkdir(parents=True, exist_ok=True)
         write_token_shard(out / f"{split}.parquet", clips, info)
         summary[f"{split}_clips"] = len(clips)
@@ -73,8 +126,17 @@ def tokenize_corpus(models: dict[str, MotionTokenizer], info: TokenInfo, shards_
     return summary
 
 
-def run_tokenize(data: DataConfig) -> dict[str, dict[str, float]]:
-    """Token shards of every training corpus, by corpus name."""
+def run_tokenize(data: DataConfig, run: FitCorpusConfig | None = None) -> dict[str, dict[str, float]]:
+    """Token shards of every training corpus, by corpus name. ``run`` (params ``fit_corpus``): with ``executor:
+    dask`` the row groups are tokenised on that cluster (``dask_address``, or a LocalCluster of ``workers``
+    processes); ``local`` tokenises in this process. The token shards are the same either way."""
+    from contextlib import nullcontext
+
+    from m3t.fitting.cluster import open_executor
+
     models, info = load_tokenizers(data.tokenizers_dir)
-    return {corpus: tokenize_corpus(models, info, data.shards_dir(corpus), data.tokens_dir(corpus))
-            for corpus in data.train_corpora}
+    distributed = run is not None and run.executor == "dask"
+    with open_executor(run) if distributed else nullcontext() as executor:
+        return {corpus: tokenize_corpus(models, info, data.shards_dir(corpus), data.tokens_dir(corpus), executor,
+                                        data.tokenizers_dir)
+                for corpus in data.train_corpora}

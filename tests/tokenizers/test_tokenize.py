@@ -171,6 +171,38 @@ def test_run_tokenize_writes_the_token_shards_of_every_training_corpus(tmp_path)
         assert np.array_equal(shard.clips[0].tokens["body"], encode_clip(models["body"], first.params["body"]))
 
 
+def test_tokenize_on_a_local_dask_cluster_writes_the_in_process_bytes(tmp_path, monkeypatch):
+    """fit_corpus.executor: dask tokenises the row groups on a LocalCluster of 2 one-thread workers (started
+    and closed for the run): every file equals the in-process run's, byte for byte (the rejected clip too); a
+    worker that sees other tokenizers than the run refuses, naming the folder."""
+    from m3t.fitting.config import FitCorpusConfig
+    from m3t.shards import io as shard_io
+    from m3t.tokenizers import tokenize as tokenize_module
+
+    monkeypatch.setattr(shard_io, "ROW_GROUP_FRAMES", 10)  # several row groups: several tasks per shard
+    models = tiny_tokenizers(seed=5)
+    runs = {}
+    for name in ("here", "dask"):
+        data = DataConfig(train_corpora=("alpha",), shards_root=str(tmp_path / "shards"),
+                          tokens_root=str(tmp_path / name), models_dir=str(tmp_path / "models"))
+        if name == "here":
+            data.tokenizers_dir.mkdir(parents=True)
+            _save_tokenizers(data.tokenizers_dir, models)
+            write_tiny_shards(data.shards_dir("alpha"), "alpha")
+        run = FitCorpusConfig(executor="dask", workers=2) if name == "dask" else FitCorpusConfig(executor="local")
+        runs[name] = (run_tokenize(data, run), data.tokens_dir("alpha"))
+    import pyarrow.parquet as pq
+
+    assert pq.ParquetFile(tmp_path / "shards" / "alpha" / "train.parquet").num_row_groups == 3
+    (summary, here), (dask_summary, there) = runs["here"], runs["dask"]
+    assert summary == dask_summary and summary["alpha"]["rejected"] == 1
+    assert sorted(p.name for p in there.iterdir()) == sorted(p.name for p in here.iterdir())
+    for path in here.iterdir():
+        assert (there / path.name).read_bytes() == path.read_bytes(), path.name
+    with pytest.raises(RuntimeError, match="seen by this worker differ from those of the run"):
+        tokenize_module.tokenize_on_worker(str(tmp_path / "models" / "tokenizers"), {"body": "other"}, [], "train")
+
+
 def test_load_tokenizers_refuses_tokenizers_of_different_downsampling(tmp_path):
     models = tiny_tokenizers()
     models["face"] = MotionTokenizer(VAEConfig(input_dim=DIMS["face"], levels=(6, 6, 6), width=8, depth=1,
