@@ -287,3 +287,24 @@ def score_point_pairs(pairs: Sequence[PointPair], progress: bool = False,
     """The scores of posed pairs (skeleton models score here directly; :class:`MotionScorer` poses first)."""
     results = evaluate_pairs([(p.prediction, p.reference) for p in pairs], progress, config)
     return MotionScores.of([ClipScore(p.clip_id, p.group, p.frames, r) for p, r in zip(pairs, results)])
+
+
+def score_on_worker(body_cfg, config: MotionMetricsConfig, frame_budget: int,
+                    pairs: Sequence[MotionPair]) -> list[ClipScore]:
+    """The per-clip scores of ``pairs`` (each with its ``reference`` parameters) on a worker process: its body
+    model (``body_cfg``: :class:`m3t.body.config.BodyConfig`) and scorer are built once per process. A clip's
+    figures are those a scorer in the run's own process gives: posing and the DTW depend only on the pair."""
+    return _worker_scorer(body_cfg, config, frame_budget).score(pairs).per_clip
+
+
+_WORKER_SCORERS: dict[tuple, MotionScorer] = {}
+
+
+def _worker_scorer(body_cfg, config: MotionMetricsConfig, frame_budget: int) -> MotionScorer:
+    key = (repr(body_cfg), repr(config), frame_budget)
+    if key not in _WORKER_SCORERS:
+        from m3t.body.factory import load_body_model
+
+        _WORKER_SCORERS.clear()  # one scorer per worker process: a body model is large
+        _WORKER_SCORERS[key] = MotionScorer(load_body_model(body_cfg), config, frame_budget)
+    return _WORKER_SCORERS[key]

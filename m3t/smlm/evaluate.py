@@ -11,6 +11,7 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -25,6 +26,7 @@ from m3t.metrics.scorer import (
     MotionPair,
     MotionScorer,
     MotionScores,
+    score_on_worker,
 )
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.schema import FittedClip
@@ -76,7 +78,7 @@ class SMLMEvaluator:
     def __init__(self, body: BodyModel, tokenizers: dict[str, MotionTokenizer], vocab: SignVocabulary,
                  examples: Sequence[Example], references: dict[str, FittedClip], batch_size: int = 16,
                  max_clips: int = 0, translation: bool = True, motion: MotionMetricsConfig = MotionMetricsConfig(),
-                 frame_budget: int = REFERENCE_FRAMES):
+                 frame_budget: int = REFERENCE_FRAMES, body_config=None):
         missing = [e.clip_id for e in examples if e.clip_id not in references]
         if missing:
             raise KeyError(f"no fitted motion for clips {missing[:5]} (of {len(missing)}); the token shards and the "
@@ -85,6 +87,7 @@ class SMLMEvaluator:
         self.examples = list(examples)[: max_clips] if max_clips > 0 else list(examples)
         self.references = {e.clip_id: references[e.clip_id] for e in self.examples}
         self.batch_size, self.translation = batch_size, translation
+        self.body_config = body_config  # m3t.body.config.BodyConfig: what workers build ``body`` from
         # motion.mode "soke_exact": SOKE's body rooting (SMPL-FX only)
         self.scorer = MotionScorer(body, motion, frame_budget)
         for cid, ref in self.references.items():  # posed at the first evaluation; reused while the budget holds them
@@ -120,14 +123,14 @@ class SMLMEvaluator:
         return self.score(self.generate(model), self.translate(model) if self.translation else None)
 
     def score(self, generated: dict[str, GeneratedMotion], translations: dict[str, str] | None = None,
-              journal: Journal | None = None) -> EvaluationReport:
+              journal: Journal | None = None, executor=None) -> EvaluationReport:
         """Score generated tokens (and translations) of the evaluation clips, e.g. read back from disk; with a
         ``journal`` (:mod:`m3t.journal`), a killed scoring resumes (:meth:`score_generated`)."""
         lost = [e.clip_id for e in self.examples if e.clip_id not in generated]
         if lost:
             raise KeyError(f"no generated motion for clips {lost[:5]} (of {len(lost)}); rerun the generate stage")
         steps = {e.clip_id: len(generated[e.clip_id].tokens["body"]) for e in self.examples}
-        scores = self.score_generated(generated, steps, journal)
+        scores = self.score_generated(generated, steps, journal, executor)
         rows = [{"clip_id": c.clip_id, "group": c.group, "steps": steps[c.clip_id],
                  "stopped": float(generated[c.clip_id].stopped), **c.metrics} for c in scores.per_clip]
         summary = dict(scores.overall)
@@ -147,31 +150,57 @@ class SMLMEvaluator:
         return report
 
     def score_generated(self, generated: dict[str, GeneratedMotion], steps: dict[str, int],
-                        journal: Journal | None = None) -> MotionScores:
+                        journal: Journal | None = None, executor=None) -> MotionScores:
         """Decode and score the generations in runs of examples whose frames stay within the scorer's budget (a
         longer clip alone): decoded parameters never outlive their run, whatever the number of clips. EOS at the
         first step leaves nothing to decode: an empty prediction, scored as the rest pose and counted. With a
         ``journal``, clips it holds are not scored again and every run is added to it once scored (a clip's
-        figures do not depend on its run)."""
+        figures do not depend on its run). With an ``executor`` (:func:`m3t.fitting.cluster.open_executor`) the
+        runs are scored on its workers, the same figures."""
         done = journal.done(JOURNAL_SECTION) if journal is not None else {}
         todo = [e for e in self.examples if e.clip_id not in done]
         down = next(iter(self.tokenizers.values())).cfg.downsample
         cost = [steps[e.clip_id] * down + self.references[e.clip_id].num_frames for e in todo]
         scored = {cid: ClipScore(**row["score"]) for cid, row in done.items()}
-        start = 0
+        runs, start = [], 0
         while start < len(todo):
             end, frames = start + 1, cost[start]
             while end < len(todo) and frames + cost[end] <= self.scorer.frame_budget:
                 frames += cost[end]
                 end += 1
-            run = todo[start:end]
-            motion = {e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {} for e in run}
-            fresh = score_against(self.scorer, [self.references[e.clip_id] for e in run], motion).per_clip
+            runs.append(todo[start:end])
+            start = end
+        for fresh in self._scored_runs(runs, generated, steps, executor):
             if journal is not None:
                 journal.add(JOURNAL_SECTION, [{"clip_id": c.clip_id, "score": dataclasses.asdict(c)} for c in fresh])
             scored.update((c.clip_id, c) for c in fresh)
-            start = end
         return MotionScores.of([scored[e.clip_id] for e in self.examples])
+
+    def _scored_runs(self, runs: list[list[Example]], generated: dict[str, GeneratedMotion], steps: dict[str, int],
+                     executor) -> Iterator[list[ClipScore]]:
+        """Each run's clip scores, in order: here, or on ``executor``'s workers (each pair carries its reference
+        parameters; at most the executor's capacity, or two, runs in flight)."""
+        def motion(run):
+            return {e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {} for e in run}
+
+        if executor is None:
+            for run in runs:
+                yield score_against(self.scorer, [self.references[e.clip_id] for e in run], motion(run)).per_clip
+            return
+        if self.body_config is None:
+            raise ValueError("scoring on workers needs the body model's config (SMLMEvaluator(body_config=...))")
+        in_flight = getattr(executor, "capacity", lambda: 2)()
+        pending: deque = deque()
+        for run in runs:
+            made = motion(run)
+            pairs = [MotionPair(e.clip_id, f"{ref.clip.corpus}/{ref.clip.language}", made[e.clip_id], ref.identity,
+                                ref.params) for e in run for ref in (self.references[e.clip_id],)]
+            pending.append(executor.submit(score_on_worker, self.body_config, self.scorer.config,
+                                           self.scorer.frame_budget, pairs))
+            while len(pending) > in_flight:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
     def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
         """Parameters of every evaluation clip against its reference (:func:`score_against`)."""

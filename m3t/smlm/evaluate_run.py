@@ -11,12 +11,14 @@
   Memory does not grow with the split: generations are decoded for a run of clips within the scorer's frame
   budget, or a block of the judge's batches, and dropped after it. A killed evaluation resumes: scored clips and
   judged sentences are journaled beside the metrics as they are made (:mod:`m3t.journal`, removed once the
-  outputs are written), and the rerun writes what an uninterrupted run writes.
+  outputs are written), and the rerun writes what an uninterrupted run writes. With ``fit_corpus.executor:
+  dask`` the DTW scoring (posing and the kernels, the evaluation's heavy part) runs on fit-corpus's Dask cluster.
 """
 from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,8 @@ from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.digest import file_digest, json_digest
 from m3t.experiment import ExperimentConfig, start_run
+from m3t.fitting.cluster import open_executor
+from m3t.fitting.config import FitCorpusConfig
 from m3t.journal import Journal
 from m3t.metrics.text import SLT_DEFINITION
 from m3t.reporting import frame_csv
@@ -52,9 +56,13 @@ JOURNAL_VERSION = "evaluate-smlm-journal-v1"  # bump when what a journaled row h
 
 
 def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
-                 judge: BackTranslationConfig | None = None) -> tuple[EvaluationReport, dict]:
-    """``judge``: the back-translation decoding settings (beam, length penalty; defaults when None)."""
+                 judge: BackTranslationConfig | None = None, cluster: FitCorpusConfig | None = None,
+                 body_cfg: BodyConfig | None = None) -> tuple[EvaluationReport, dict]:
+    """``judge``: the back-translation decoding settings (beam, length penalty; defaults when None). ``cluster``
+    (params ``fit_corpus``) with ``executor: dask``: the DTW scoring runs on that cluster, whose workers build the
+    body model of ``body_cfg``; the outputs are the same."""
     setup = evaluator_for(cfg, data, body)
+    setup.evaluator.body_config = body_cfg
     loaded, evaluator = setup.loaded, setup.evaluator
     out = data.generated
     shard_path, text_path = out / "generated.parquet", out / "translations.jsonl"
@@ -75,7 +83,9 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
     metrics_dir = data.metrics("smlm")
     judge = judge or BackTranslationConfig()
     journal = Journal(metrics_dir / JOURNAL_NAME, evaluation_key(cfg, data, judge, [shard_path, text_path]))
-    report = evaluator.score(generated, translations, journal)
+    distributed = cluster is not None and cluster.executor == "dask"
+    with open_executor(cluster) if distributed else nullcontext() as executor:
+        report = evaluator.score(generated, translations, journal, executor)
     # every clip of the split is scored: clips over the model's limits were cut and kept; only clips the
     # vocabulary cannot take at all (a language without prompts, no text) are left out, and counted here
     report.summary.update({"clips_scored": float(len(evaluator.examples)), "clips_cut": float(len(setup.cut)),
@@ -132,8 +142,8 @@ def backtranslate_motion(references: Sequence[FittedClip], motion_of: Callable[[
 
 
 def evaluate_and_log(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, experiment: ExperimentConfig,
-                     judge: BackTranslationConfig | None = None) -> dict[str, float]:
-    report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg), judge)
+                     judge: BackTranslationConfig | None = None, cluster: FitCorpusConfig | None = None) -> dict[str, float]:
+    report, train_config = run_evaluate(cfg, data, load_body_model(body_cfg), judge, cluster, body_cfg)
     tags = {"split": cfg.split, "translation_objective": str(train_config.get("translation_objective", True)),
             "translation_steps": str(train_config.get("translation_steps", "shared")), "body_model": body_cfg.model, "seed": str(train_config.get("seed", ""))}
     if cfg.backtranslate:

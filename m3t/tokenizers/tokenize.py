@@ -126,8 +126,8 @@ def tokenize_corpus(models: dict[str, MotionTokenizer], info: TokenInfo, shards_
     return summary
 
 
-def run_tokenize(data: DataConfig, run: FitCorpusConfig | None = None) -> dict[str, dict[str, float]]:
-    """Token shards of every training corpus, by corpus name. ``run`` (params ``fit_corpus``): with ``executor:
+def run_tokenize(data: DataConfig, cluster: FitCorpusConfig | None = None) -> dict[str, dict[str, float]]:
+    """Token shards of every training corpus, by corpus name. ``cluster`` (params ``fit_corpus``): with ``executor:
     dask`` the row groups are tokenised on that cluster (``dask_address``, or a LocalCluster of ``workers``
     processes); ``local`` tokenises in this process. The token shards are the same either way."""
     from contextlib import nullcontext
@@ -135,8 +135,8 @@ def run_tokenize(data: DataConfig, run: FitCorpusConfig | None = None) -> dict[s
     from m3t.fitting.cluster import open_executor
 
     models, info = load_tokenizers(data.tokenizers_dir)
-    distributed = run is not None and run.executor == "dask"
-    with open_executor(run) if distributed else nullcontext() as executor:
+    distributed = cluster is not None and cluster.executor == "dask"
+    with open_executor(cluster) if distributed else nullcontext() as executor:
         return {corpus: tokenize_corpus(models, info, data.shards_dir(corpus), data.tokens_dir(corpus), executor,
                                         data.tokenizers_dir)
                 for corpus in data.train_corpora}

@@ -502,3 +502,29 @@ def test_training_on_a_cuda_device_that_is_absent_is_refused_not_run_on_the_cpu(
     with pytest.raises(RuntimeError, match="device 'cuda' requested but no CUDA device is visible"):
         train_tokenizer("face", TINY_VAE, tok_cfg,
                         [np.zeros((16, 3), dtype=np.float32)], None, "v", progress=False)
+
+
+def test_scoring_on_a_local_dask_cluster_gives_the_in_process_figures(evaluator, smlm_parts, monkeypatch):
+    """fit_corpus.executor: dask scores the runs on a LocalCluster of 2 one-thread workers that build the body
+    model from its config: every clip's figures equal the in-process ones exactly (an empty generation too)."""
+    from m3t.body.config import BodyConfig
+    from m3t.fitting.cluster import open_executor
+    from m3t.fitting.config import FitCorpusConfig
+    from m3t.smlm.generate import GeneratedMotion
+    from m3t.smlm.vocab import MOTION_STREAMS
+
+    _, _, examples = smlm_parts
+    rng = np.random.default_rng(5)
+    generated = {e.clip_id: GeneratedMotion({s: rng.integers(0, CODEBOOKS[s], 2 + k % 3) for s in MOTION_STREAMS},
+                                            True) for k, e in enumerate(examples)}
+    generated[examples[1].clip_id] = GeneratedMotion({s: np.zeros(0, np.int64) for s in MOTION_STREAMS}, True)
+    steps = {cid: len(g.tokens["body"]) for cid, g in generated.items()}
+    monkeypatch.setattr(evaluator.scorer, "frame_budget", 30)  # several runs: several tasks
+    here = evaluator.score_generated(generated, steps)
+    with pytest.raises(ValueError, match="needs the body model's config"):
+        evaluator.score_generated(generated, steps, executor=object())
+    monkeypatch.setattr(evaluator, "body_config", BodyConfig())
+    with open_executor(FitCorpusConfig(executor="dask", workers=2)) as executor:
+        there = evaluator.score_generated(generated, steps, executor=executor)
+    assert len(here.per_clip) == len(examples) and here.empty_rate > 0
+    assert there.per_clip == here.per_clip and there.summary == here.summary
