@@ -56,7 +56,6 @@ import math
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -66,6 +65,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from report import cpu_model, run_measured, write_and_log
 
 MODELS = ("tokenizer", "smlm", "sgsa", "pt", "probe")
 # Batch sizes of the fit and steps per run. The small models (SGSA, PT, probe: paper batch 32 / 64) are fitted up to
@@ -296,22 +297,10 @@ def run(model_name: str, batch: int, steps: int, threads: int, timeout: float, w
     log = work / f"{model_name}-{batch}.log"
     command = [sys.executable, __file__, "--child", model_name, "--batch", str(batch), "--steps", str(steps),
                "--threads", str(threads), "--result", str(result)]
-    with log.open("w") as out:
-        proc = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
-        deadline = time.perf_counter() + timeout
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.perf_counter() > deadline:
-                proc.kill()
-                _, status, usage = os.wait4(proc.pid, 0)
-                break
-            time.sleep(0.2)
-    row = {"batch": batch, "peak_rss_mb": round(usage.ru_maxrss / 1024, 1)}
+    exit_status, peak_mb, _, _ = run_measured(command, log, timeout, ROOT, poll=0.2)
+    row = {"batch": batch, "peak_rss_mb": round(peak_mb, 1)}
     if not result.exists():
-        return {**row, "stopped": True, "exit_status": os.waitstatus_to_exitcode(status),
-                "log_tail": log.read_text().splitlines()[-15:]}
+        return {**row, "stopped": True, "exit_status": exit_status, "log_tail": log.read_text().splitlines()[-15:]}
     return {**row, **json.loads(result.read_text())}
 
 
@@ -465,9 +454,7 @@ def host() -> dict:
     """The CPU model (``/proc/cpuinfo``), cores, Python and torch of this machine."""
     import torch
 
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gb": round(os.sysconf("SC_PHYS_PAGES") * os.sysconf(
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "memory_gb": round(os.sysconf("SC_PHYS_PAGES") * os.sysconf(
         "SC_PAGE_SIZE") / 2**30, 1), "python": platform.python_version(), "torch": torch.__version__,
             "torch_threads": torch.get_num_threads()}
 
@@ -498,8 +485,6 @@ def main() -> None:
     if args.child:
         child(args.child, args.batch, int(args.steps[0]), args.threads, Path(args.result))
         return
-    from report import write_and_log
-
     batches = {**BATCHES, **{m: tuple(int(b) for b in v.split(",")) for m, v in overrides(args.batches).items()}}
     steps_per_run = {**STEPS, **{m: int(v) for m, v in overrides(args.steps).items()}}
     params = paper_params()

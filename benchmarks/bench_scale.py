@@ -48,7 +48,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -57,6 +56,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from report import cpu_model, run_measured, write_and_log
 
 STAGES = ("import", "tokenize", "train_smlm", "generate", "evaluate", "probe_features")
 HOW2SIGN_SPLITS = {"train": 31128, "dev": 1741, "test": 2322}  # clips per split, Duarte et al. 2021
@@ -323,27 +324,12 @@ def run_stage(stage: str, arm_dir: Path, clips: int, args) -> dict:
     result_path.unlink(missing_ok=True)
     command = [sys.executable, __file__, "--stage", stage, "--arm-dir", str(arm_dir), "--clips", str(clips),
                "--steps", str(args.steps), "--seed", str(args.seed), "--result", str(result_path)]
-    log = (arm_dir / f"{stage}.log").open("w")
-    started = time.perf_counter()
-    proc = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    deadline = started + args.stage_timeout
-    status, usage = 0, None
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        if time.perf_counter() > deadline:
-            proc.kill()
-            _, status, usage = os.wait4(proc.pid, 0)
-            break
-        time.sleep(0.5)
-    wall = time.perf_counter() - started
-    log.close()
-    row = {"wall_s": round(wall, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1)}
+    log = arm_dir / f"{stage}.log"
+    exit_status, peak_mb, wall, killed = run_measured(command, log, args.stage_timeout, ROOT)
+    row = {"wall_s": round(wall, 1), "peak_rss_mb": round(peak_mb, 1)}
     if not result_path.exists():
-        tail = (arm_dir / f"{stage}.log").read_text().splitlines()[-15:]
-        row.update(stopped=True, exit_status=os.waitstatus_to_exitcode(status), log_tail=tail,
-                   timed_out=wall >= args.stage_timeout)
+        row.update(stopped=True, exit_status=exit_status, log_tail=log.read_text().splitlines()[-15:],
+                   timed_out=killed)
         return row
     result = json.loads(result_path.read_text())
     row.update(result)
@@ -383,9 +369,7 @@ def summarise(arms: dict[str, dict]) -> dict:
 
 
 def host() -> dict:
-    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version()}
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
 
 
 def main() -> None:
@@ -406,8 +390,6 @@ def main() -> None:
     if args.stage:
         child(args)
         return
-    from report import write_and_log
-
     arms: dict[str, dict] = {}
     partial = Path(args.out).with_suffix(".partial.json")  # every finished stage, should the run be cut short
 

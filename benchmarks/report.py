@@ -1,4 +1,5 @@
-"""Shared tail of every benchmark: write the result JSON and log it as an MLflow run."""
+"""What every benchmark shares: write the result JSON and log it as an MLflow run; run one arm in a fresh
+process and read its peak memory; name the CPU."""
 from __future__ import annotations
 
 import json
@@ -21,3 +22,37 @@ def write_and_log(result: dict, out: str | Path, stage: str) -> Path:
         print(f"(not logged to MLflow: {exc})")
     print(json.dumps(result, indent=2))
     return out
+
+
+def cpu_model() -> str:
+    """This machine's CPU model, as ``/proc/cpuinfo`` names it."""
+    import platform
+
+    return next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                 if line.startswith("model name")), platform.processor())
+
+
+def run_measured(command: list[str], log: Path, timeout: float, cwd: Path,
+                 poll: float = 0.5) -> tuple[int, float, float, bool]:
+    """Run ``command`` in a fresh process (output to ``log``), killed after ``timeout`` seconds: its exit status,
+    peak resident memory in MB (the kernel's ``ru_maxrss`` of that process, ``os.wait4``), wall seconds and
+    whether it was killed."""
+    import os
+    import subprocess
+    import time
+
+    started = time.perf_counter()
+    with open(log, "w") as out:
+        proc = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+        killed = False
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() > started + timeout:
+                proc.kill()
+                _, status, usage = os.wait4(proc.pid, 0)
+                killed = True
+                break
+            time.sleep(poll)
+    return os.waitstatus_to_exitcode(status), usage.ru_maxrss / 1024, time.perf_counter() - started, killed
