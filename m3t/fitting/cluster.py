@@ -30,7 +30,7 @@ from __future__ import annotations
 import os
 import sys
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future
 from contextlib import contextmanager
 from dataclasses import replace
@@ -66,7 +66,7 @@ def for_workers(job: FitJob) -> FitJob:
     """``job`` with the paths a worker opens made absolute against this process' working directory: the cache
     dir, the corpus root (``""`` = the adapter's packaged default, kept) and the body model's build cache (not
     part of any cache key, so fits and shards are unchanged)."""
-    absolute = lambda path: os.path.abspath(path) if path else path  # noqa: E731
+    absolute = lambda path: os.path.abspath(path) if path else path
     return replace(job, run=replace(job.run, cache_dir=absolute(job.run.cache_dir)),
                    source=replace(job.source, root=absolute(job.source.root)),
                    body=replace(job.body, cache_dir=absolute(job.body.cache_dir)))
@@ -114,7 +114,7 @@ class DaskExecutor(Executor):
             raise self.lost(f"the client's connection is {self.client.status}")
         try:
             return self.client.sync(self.client.scheduler.identity, n_workers=0, callback_timeout=CONNECT_SECONDS)
-        except Exception as exc:  # noqa: BLE001 - whatever the transport says, the scheduler did not answer
+        except Exception as exc:
             raise self.lost(f"it did not answer within {CONNECT_SECONDS:.0f} s: {type(exc).__name__}: {exc}") from exc
 
     def capacity(self) -> int:
@@ -181,3 +181,19 @@ def open_executor(run: FitCorpusConfig) -> Iterator[Executor | None]:
     finally:
         if executor is not None:
             executor.shutdown(cancel_futures=True)
+
+
+def submitted_in_order(executor: Executor, fn: Callable[..., Any], calls: Iterable[tuple]) -> Iterator[Any]:
+    """``fn(*args)`` for each ``args`` of ``calls`` on ``executor``, results in the order of ``calls``, with at most
+    the executor's :meth:`DaskExecutor.capacity` (two for another executor) calls in flight, so a stage holds only
+    that many inputs and results at once (tokenize's row groups, the evaluation's runs of clips)."""
+    from collections import deque
+
+    in_flight = executor.capacity() if isinstance(executor, DaskExecutor) else 2
+    pending: deque[Future] = deque()
+    for args in calls:
+        pending.append(executor.submit(fn, *args))
+        while len(pending) > in_flight:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()

@@ -121,6 +121,19 @@ class _Reference:
     frames: int  # T2
 
 
+def budget_runs(sizes: Sequence[int], budget: int) -> Iterator[slice]:
+    """Consecutive runs of items whose sizes (frames) sum to at most ``budget``; an item larger than the budget
+    is a run of its own. How scoring keeps its memory flat, whatever the number of clips."""
+    start, total = 0, 0
+    for n, size in enumerate(sizes):
+        if n > start and total + size > budget:
+            yield slice(start, n)
+            start, total = n, 0
+        total += size
+    if start < len(sizes):
+        yield slice(start, len(sizes))
+
+
 class MotionScorer:
     """Poses parameter sequences into the metric point sets of ``body`` and scores predictions against references.
 
@@ -224,16 +237,9 @@ class MotionScorer:
 
     def _chunks(self, pairs: Sequence[MotionPair]) -> Iterator[slice]:
         """Consecutive pairs whose frames (prediction, 1 for an empty one, plus reference) fit the budget."""
-        start, frames = 0, 0
-        for n, pair in enumerate(pairs):
-            ref = _frames(pair.reference) if pair.reference is not None else self._references[pair.clip_id].frames
-            size = max(_frames(pair.prediction), 1) + ref
-            if n > start and frames + size > self.frame_budget:
-                yield slice(start, n)
-                start, frames = n, 0
-            frames += size
-        if start < len(pairs):
-            yield slice(start, len(pairs))
+        return budget_runs([max(_frames(p.prediction), 1) + (_frames(p.reference) if p.reference is not None
+                                                              else self._references[p.clip_id].frames)
+                            for p in pairs], self.frame_budget)
 
     def _evaluate(self, posed: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
                   pairs: Sequence[MotionPair], start: int) -> list[dict[str, float]]:

@@ -11,13 +11,13 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from m3t.body.protocol import BodyModel
+from m3t.fitting.cluster import submitted_in_order
 from m3t.journal import Journal
 from m3t.metrics.motion import MotionMetricsConfig
 from m3t.metrics.scorer import (
@@ -26,6 +26,7 @@ from m3t.metrics.scorer import (
     MotionPair,
     MotionScorer,
     MotionScores,
+    budget_runs,
     score_on_worker,
 )
 from m3t.metrics.text import translation_metrics_by_language
@@ -162,14 +163,7 @@ class SMLMEvaluator:
         down = next(iter(self.tokenizers.values())).cfg.downsample
         cost = [steps[e.clip_id] * down + self.references[e.clip_id].num_frames for e in todo]
         scored = {cid: ClipScore(**row["score"]) for cid, row in done.items()}
-        runs, start = [], 0
-        while start < len(todo):
-            end, frames = start + 1, cost[start]
-            while end < len(todo) and frames + cost[end] <= self.scorer.frame_budget:
-                frames += cost[end]
-                end += 1
-            runs.append(todo[start:end])
-            start = end
+        runs = [todo[run] for run in budget_runs(cost, self.scorer.frame_budget)]
         for fresh in self._scored_runs(runs, generated, steps, executor):
             if journal is not None:
                 journal.add(JOURNAL_SECTION, [{"clip_id": c.clip_id, "score": dataclasses.asdict(c)} for c in fresh])
@@ -179,7 +173,7 @@ class SMLMEvaluator:
     def _scored_runs(self, runs: list[list[Example]], generated: dict[str, GeneratedMotion], steps: dict[str, int],
                      executor) -> Iterator[list[ClipScore]]:
         """Each run's clip scores, in order: here, or on ``executor``'s workers (each pair carries its reference
-        parameters; at most the executor's capacity, or two, runs in flight)."""
+        parameters; :func:`m3t.fitting.cluster.submitted_in_order`)."""
         def motion(run):
             return {e.clip_id: self.motion_params(generated[e.clip_id]) if steps[e.clip_id] else {} for e in run}
 
@@ -189,18 +183,15 @@ class SMLMEvaluator:
             return
         if self.body_config is None:
             raise ValueError("scoring on workers needs the body model's config (SMLMEvaluator(body_config=...))")
-        in_flight = getattr(executor, "capacity", lambda: 2)()
-        pending: deque = deque()
-        for run in runs:
-            made = motion(run)
-            pairs = [MotionPair(e.clip_id, f"{ref.clip.corpus}/{ref.clip.language}", made[e.clip_id], ref.identity,
-                                ref.params) for e in run for ref in (self.references[e.clip_id],)]
-            pending.append(executor.submit(score_on_worker, self.body_config, self.scorer.config,
-                                           self.scorer.frame_budget, pairs))
-            while len(pending) > in_flight:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
+
+        def pairs(run):
+            made, refs = motion(run), [self.references[e.clip_id] for e in run]
+            return [MotionPair(r.clip.id, f"{r.clip.corpus}/{r.clip.language}", made[r.clip.id], r.identity, r.params)
+                    for r in refs]
+
+        yield from submitted_in_order(executor, score_on_worker, ((self.body_config, self.scorer.config,
+                                                                   self.scorer.frame_budget, pairs(run))
+                                                                  for run in runs))
 
     def score_motion(self, motion: dict[str, dict[str, np.ndarray]]) -> MotionScores:
         """Parameters of every evaluation clip against its reference (:func:`score_against`)."""

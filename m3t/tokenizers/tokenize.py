@@ -12,7 +12,6 @@ tokenizers from the same paths, one torch thread each), and the token shards are
 """
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 from m3t.atomic import write_json, write_jsonl
 from m3t.corpora.splits import SPLITS
 from m3t.digest import file_digest
+from m3t.fitting.cluster import open_executor, submitted_in_order
 from m3t.fitting.config import FitCorpusConfig
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import iter_shard, split_shards
@@ -86,20 +86,14 @@ def _worker_tokenizers(tokenizers_dir: str) -> tuple[dict[str, MotionTokenizer],
 def _tokenized_groups(models: dict[str, MotionTokenizer], info: TokenInfo, tokenizers_dir: Path | None, shard: Path,
                       split: str, executor) -> Iterator[tuple[list[TokenClip], list[dict]]]:
     """Each row group of ``shard`` tokenised, in file order: here, or on ``executor``'s workers with at most its
-    capacity (two without one) of groups in flight."""
+    capacity of groups in flight (:func:`m3t.fitting.cluster.submitted_in_order`)."""
     groups = iter_shard(shard)
     if executor is None:
         for group in groups:
             yield tokenize_clips(models, list(group.clips), split)
         return
-    in_flight = getattr(executor, "capacity", lambda: 2)()
-    pending: deque = deque()
-    for group in groups:
-        pending.append(executor.submit(tokenize_on_worker, str(tokenizers_dir), info.tokenizers, list(group.clips), split))
-        while len(pending) > in_flight:
-            yield pending.popleft().result()
-    while pending:
-        yield pending.popleft().result()
+    yield from submitted_in_order(executor, tokenize_on_worker, ((str(tokenizers_dir), info.tokenizers,
+                                                                  list(group.clips), split) for group in groups))
 
 
 def tokenize_corpus(models: dict[str, MotionTokenizer], info: TokenInfo, shards_dir: Path,
@@ -132,7 +126,6 @@ def run_tokenize(data: DataConfig, cluster: FitCorpusConfig | None = None) -> di
     processes); ``local`` tokenises in this process. The token shards are the same either way."""
     from contextlib import nullcontext
 
-    from m3t.fitting.cluster import open_executor
 
     models, info = load_tokenizers(data.tokenizers_dir)
     distributed = cluster is not None and cluster.executor == "dask"
