@@ -24,9 +24,10 @@ train_smlm          the SMLM trained for ``--steps`` optimiser steps (the traine
 generate            :func:`m3t.smlm.generate_run.run_generate` on the test split (no renders, no ``.pose`` export)
 evaluate            :func:`m3t.smlm.evaluate_run.run_evaluate`: DTW scoring and the back-translation judges (the
                     embedded pipeline's) of every generated test clip
-probe_features      the recognition probe's input (:func:`m3t.slr.features.build_examples`: trimmed, encoded by
-                    the frozen tokenizer encoders) of every test clip, labelled by its first sign (the
-                    probe trains on an isolated-sign corpus; the features are computed alike)
+probe_features      the recognition probe's input (:func:`m3t.slr.features.iter_examples`: trimmed, encoded by
+                    the frozen tokenizer encoders) of every test clip, a batch at a time as evaluate-slr
+                    encodes them, each clip labelled by its first sign (the probe's corpus is of isolated
+                    signs; the features are computed alike)
 ==================  ========================================================================================
 
 Per stage and arm: ``wall_s``, ``peak_rss_mb``, ``clips`` / ``frames`` processed and their rates. The summary
@@ -36,6 +37,10 @@ compares the largest arm with the smallest: the goal is peak RSS at most 1.5x an
     python benchmarks/bench_scale.py [--arms 1000 5000 31000] [--steps 200] [--stage-timeout 3600]
         [--work .cache/bench_scale] [--keep] [--out benchmarks/results/scale.json]
 
+Stages can be run again on arms kept by an earlier run (``--keep``), e.g. after a change to them:
+``--reuse --stages generate evaluate --merge <earlier result>`` keeps the arms' folders, runs only those stages
+and takes the other rows from the earlier result (``reran`` in the output says which rows are new).
+
 Needs the embedded pipeline's tokenizers and back-translation judges (``dvc repro train-tokenizers
 train-backtranslation``). Disk: about 1.2 KB per frame of shards (7 GB at 31,000 clips); an arm's folders are
 removed after it unless ``--keep``.
@@ -43,6 +48,7 @@ removed after it unless ``--keep``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import os
@@ -205,8 +211,6 @@ def stage_tokenize(arm_dir: Path, args) -> dict:
 
 
 def stage_train_smlm(arm_dir: Path, args) -> dict:
-    import dataclasses
-
     import torch
 
     from m3t.config import load_params
@@ -277,12 +281,10 @@ def stage_evaluate(arm_dir: Path, args) -> dict:
 
 
 def stage_probe_features(arm_dir: Path, args) -> dict:
-    import dataclasses
-
     from m3t.body.factory import load_body_model
     from m3t.config import load_params
     from m3t.shards.io import iter_split
-    from m3t.slr.features import FrozenEncoders, build_examples
+    from m3t.slr.features import FrozenEncoders, example_batches, iter_examples
     from m3t.slr.trim import Trimmer
     from m3t.tokenizers.tokenize import load_tokenizers
 
@@ -292,16 +294,24 @@ def stage_probe_features(arm_dir: Path, args) -> dict:
     encoders = FrozenEncoders(models)
     trimmer = Trimmer(load_body_model(params.body), params.slr.trim)
     skipped: list[dict] = []
-    # sentence clips carry no label: each is labelled by its first sign, as an isolated-sign corpus would be
-    clips = list(iter_split(data.shards_dirs, "test"))
-    glosses = sorted({c.clip.gloss.split()[0] for c in clips})
-    clips = [dataclasses.replace(c, clip=dataclasses.replace(c.clip, label=glosses.index(c.clip.gloss.split()[0])))
-             for c in clips]
-    examples = build_examples(clips, {i: i for i in range(len(glosses))}, trimmer, encoders,
-                              ("body", "left_hand", "right_hand", "face"), params.slr.max_steps, bad_clips="skip",
-                              skipped=skipped)
-    return {"clips": len(clips), "frames": int(sum(c.num_frames for c in clips)), "encoded": len(examples),
-            "skipped": len(skipped)}
+    # sentence clips carry no label: each is labelled by its first sign (an isolated-sign corpus's label), the
+    # classes from a metadata pass; the clips are then encoded a batch at a time, as evaluate-slr encodes them
+    glosses = sorted({c.clip.gloss.split()[0] for c in iter_split(data.shards_dirs, "test", modalities=[])})
+    index = {gloss: n for n, gloss in enumerate(glosses)}
+    counted = {"clips": 0, "frames": 0}
+
+    def labelled():
+        for c in iter_split(data.shards_dirs, "test"):
+            counted["clips"] += 1
+            counted["frames"] += c.num_frames
+            yield dataclasses.replace(c, clip=dataclasses.replace(c.clip, label=index[c.clip.gloss.split()[0]]))
+
+    encoded = 0
+    for batch in example_batches(iter_examples(labelled(), {i: i for i in range(len(glosses))}, trimmer, encoders,
+                                               ("body", "left_hand", "right_hand", "face"), params.slr.max_steps,
+                                               bad_clips="skip", skipped=skipped), params.slr_evaluate.batch_size):
+        encoded += len(batch)
+    return {**counted, "encoded": encoded, "skipped": len(skipped)}
 
 
 STAGE_FUNCTIONS = {name: globals()[f"stage_{name}"] for name in STAGES}
@@ -382,6 +392,9 @@ def main() -> None:
     parser.add_argument("--models", default=str(ROOT / "models"))
     parser.add_argument("--keep", action="store_true")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "scale.json"))
+    parser.add_argument("--stages", nargs="+", choices=STAGES, default=list(STAGES))
+    parser.add_argument("--reuse", action="store_true", help="run --stages on the arms' kept folders")
+    parser.add_argument("--merge", help="an earlier result whose rows the stages not run keep")
     parser.add_argument("--stage", choices=STAGES, help=argparse.SUPPRESS)
     parser.add_argument("--arm-dir", help=argparse.SUPPRESS)
     parser.add_argument("--clips", type=int, help=argparse.SUPPRESS)
@@ -390,25 +403,35 @@ def main() -> None:
     if args.stage:
         child(args)
         return
-    arms: dict[str, dict] = {}
+    earlier = json.loads(Path(args.merge).read_text()) if args.merge else {}
+    arms: dict[str, dict] = {size: dict(rows) for size, rows in earlier.get("arms", {}).items()}
+    reran: dict[str, list[str]] = {}
     partial = Path(args.out).with_suffix(".partial.json")  # every finished stage, should the run be cut short
 
     def result() -> dict:
-        return {"host": host(), "date": time.strftime("%Y-%m-%d"), "steps": args.steps,
-                "corpus": {"mean_frames": HOW2SIGN_MEAN_FRAMES, "sigma": LENGTH_SIGMA, "splits": HOW2SIGN_SPLITS,
-                           "entered_as": "generator ground-truth Anny parameters written as shards (no fitting)"},
-                "arms": arms, "largest_vs_smallest": summarise(arms)}
+        out = {"host": host(), "date": time.strftime("%Y-%m-%d"), "steps": args.steps,
+               "corpus": {"mean_frames": HOW2SIGN_MEAN_FRAMES, "sigma": LENGTH_SIGMA, "splits": HOW2SIGN_SPLITS,
+                          "entered_as": "generator ground-truth Anny parameters written as shards (no fitting)"},
+               "arms": arms, "largest_vs_smallest": summarise(arms)}
+        if args.merge:
+            out.update(merged_from={"date": earlier.get("date"), "host": earlier.get("host")}, reran=reran)
+        return out
 
     for clips in sorted(args.arms):
         arm_dir = Path(args.work) / f"arm-{clips}"
-        shutil.rmtree(arm_dir, ignore_errors=True)
-        arm_dir.mkdir(parents=True)
-        prepare_arm(arm_dir, Path(args.models))
-        arms[str(clips)] = {}
-        for stage in STAGES:
+        if args.reuse:
+            if not (arm_dir / "shards").is_dir():
+                raise SystemExit(f"--reuse: {arm_dir} holds no kept arm; run it with --keep first")
+        else:
+            shutil.rmtree(arm_dir, ignore_errors=True)
+            arm_dir.mkdir(parents=True)
+            prepare_arm(arm_dir, Path(args.models))
+        arms.setdefault(str(clips), {})
+        for stage in (s for s in STAGES if s in args.stages):
             print(f"[{time.strftime('%H:%M:%S')}] arm {clips}: {stage}", flush=True)
             row = run_stage(stage, arm_dir, clips, args)
             arms[str(clips)][stage] = row
+            reran.setdefault(str(clips), []).append(stage)
             print(json.dumps(row), flush=True)
             partial.write_text(json.dumps(result(), indent=2))
             if row.get("stopped"):

@@ -25,7 +25,7 @@ Axis legend: T frames (T1 predicted, T2 reference), D modality dim, K points of 
 from __future__ import annotations
 
 from collections import OrderedDict, defaultdict
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,9 +114,9 @@ def _frames(params: ParamSequence) -> int:
 
 @dataclass(frozen=True)
 class _Reference:
-    """A stored reference: what posing it takes, not its points."""
+    """A stored reference: what posing it takes, not its points (its parameters, or how to read them)."""
 
-    params: dict[str, np.ndarray]  # (T2, D_m) float32 per modality
+    params: dict[str, np.ndarray] | Callable[[], ParamSequence]  # (T2, D_m) float32 per modality, or a reader
     identity: np.ndarray  # (P,) float32
     frames: int  # T2
 
@@ -175,17 +175,36 @@ class MotionScorer:
         parameters that do not fit the body model's layout raise ``ValueError`` naming the clip, here rather
         than at scoring.
         """
+        stored, ident, frames = self._checked(clip_id, params, identity)
+        self._drop(clip_id)
+        self._references[clip_id] = _Reference(stored, ident, frames)
+
+    def reference_on_demand(self, clip_id: str, frames: int, identity: np.ndarray,
+                            read: Callable[[], ParamSequence]) -> None:
+        """Store the reference of ``clip_id`` as :meth:`reference` does, but keep only how to ``read`` its
+        ``frames`` frames of parameters (e.g. from its shard: :class:`m3t.shards.references.SplitReferences`):
+        they are read each time the clip is posed and not held, and checked then (``ValueError`` naming the clip,
+        also when they are not ``frames`` long)."""
+        ident = self._checked_identity(clip_id, identity)
+        self._drop(clip_id)
+        self._references[clip_id] = _Reference(read, ident, int(frames))
+
+    def _checked(self, clip_id: str, params: ParamSequence,
+                 identity: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
+        """Parameters (float32; no copy of float32 input), identity and frames of a reference."""
         stored = {k: np.asarray(v, dtype=np.float32) for k, v in params.items()}
-        ident = np.asarray(identity, dtype=np.float32)
         try:
             frames = self.body.layout.check(stored)
         except ValueError as exc:
             raise ValueError(f"reference of clip {clip_id!r}: {exc}") from exc
+        return stored, self._checked_identity(clip_id, identity), frames
+
+    def _checked_identity(self, clip_id: str, identity: np.ndarray) -> np.ndarray:
+        ident = np.asarray(identity, dtype=np.float32)
         if ident.size != self.body.layout.identity_dim:
             raise ValueError(f"reference of clip {clip_id!r}: identity of shape {ident.shape}, expected "
                              f"({self.body.layout.identity_dim},) for body model {self.body.name!r}")
-        self._drop(clip_id)
-        self._references[clip_id] = _Reference(stored, ident, frames)
+        return ident
 
     @property
     def cached(self) -> tuple[str, ...]:
@@ -227,7 +246,13 @@ class MotionScorer:
             self._cache.move_to_end(pair.clip_id)
             return self._cache[pair.clip_id]
         stored = self._references[pair.clip_id]
-        points = self._pose(stored.params, stored.identity)
+        params = stored.params
+        if callable(params):
+            params, _, frames = self._checked(pair.clip_id, params(), stored.identity)
+            if frames != stored.frames:
+                raise ValueError(f"reference of clip {pair.clip_id!r}: {frames} frames read, {stored.frames} "
+                                 "announced; its shard changed during the run (re-run the evaluation)")
+        points = self._pose(params, stored.identity)
         self._keep(pair.clip_id, points, stored.frames, needed)
         return points
 

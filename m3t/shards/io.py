@@ -425,6 +425,20 @@ def iter_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     return _row_groups(pf, path, layout, names)
 
 
+def read_row_group(path: str | os.PathLike, group: int, modalities: Sequence[str] | None = None) -> ShardContents:
+    """One row group of a shard (``group`` counts from 0, as :func:`iter_shard` yields them), with the checks
+    :func:`iter_shard` makes on it (errors name the row within the whole shard). Ids repeated in other groups are
+    not looked for: read the shard through :func:`iter_shard` once to know them unique."""
+    path = Path(path)
+    pf, layout, names = _open_shard(path, modalities)
+    with pf:
+        if not 0 <= group < pf.num_row_groups:
+            raise IndexError(f"{path}: no row group {group}; the shard has {pf.num_row_groups}")
+        first_row = sum(pf.metadata.row_group(g).num_rows for g in range(group))
+        table = pf.read_row_group(group, columns=[*METADATA_COLUMNS, IDENTITY_COLUMN, *names])
+        return _contents(table, path, layout, names, first_row, set())
+
+
 def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None) -> ShardContents:
     """Read a shard into memory (all its row groups; :func:`iter_shard` reads one at a time).
 

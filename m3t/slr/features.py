@@ -5,13 +5,16 @@ into the shared hand tokenizer, :func:`m3t.tokenizers.data.clip_sequences`), edg
 downsampling, and :meth:`MotionTokenizer.hidden` gives the features just before the latent projection that
 feeds FSQ (width W). The encoders are frozen three ways: ``requires_grad`` off, always in eval mode, and run
 under ``no_grad``; the features are computed once per clip and cached (the probe never backpropagates into
-them). Only the streams a variant uses are encoded: the face-less probe never runs the face encoder.
+them). Only the streams a variant uses are encoded: the face-less probe never runs the face encoder. Training
+holds its splits' features (:func:`build_examples`); evaluation encodes a batch at a time and lets the features
+go once every probe has scored them (:func:`iter_examples`, :func:`example_batches`), so its memory does not grow
+with the split.
 
 Axis legend: T frames, N = ceil(T / downsample) token steps, W encoder width.
 """
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,12 +100,21 @@ def build_examples(clips: Iterable[FittedClip], class_index: dict[int, int], tri
                    encoders: FrozenEncoders, streams: Sequence[str], max_steps: int,
                    dtype: torch.dtype = torch.float32, bad_clips: str = "error",
                    skipped: list[dict] | None = None) -> list[Example]:
-    """Trim and encode every clip (labels mapped through ``class_index``). A clip too short for the window or
-    with more than ``max_steps`` steps raises naming it, or with ``bad_clips="skip"`` is listed in ``skipped``."""
+    """Trim and encode every clip (labels mapped through ``class_index``), held in memory: what training reads
+    every epoch. A clip too short for the window or with more than ``max_steps`` steps raises naming it, or with
+    ``bad_clips="skip"`` is listed in ``skipped`` (:func:`iter_examples`, one clip at a time)."""
+    return list(iter_examples(clips, class_index, trimmer, encoders, streams, max_steps, dtype, bad_clips, skipped))
+
+
+def iter_examples(clips: Iterable[FittedClip], class_index: dict[int, int], trimmer: Trimmer,
+                  encoders: FrozenEncoders, streams: Sequence[str], max_steps: int,
+                  dtype: torch.dtype = torch.float32, bad_clips: str = "error",
+                  skipped: list[dict] | None = None) -> Iterator[Example]:
+    """:func:`build_examples` one clip at a time, in order: a clip is read from ``clips`` when the example
+    before it has been taken, so an evaluation that lets each go holds one clip's motion and features."""
     if trimmer.cfg.min_frames < encoders.downsample:
         raise ValueError(f"slr.trim.min_frames={trimmer.cfg.min_frames} is below the tokenizers' downsampling "
                          f"({encoders.downsample} frames per token); raise it to at least {encoders.downsample}")
-    examples = []
     for fitted in clips:
         clip = fitted.clip
         try:
@@ -120,5 +132,21 @@ def build_examples(clips: Iterable[FittedClip], class_index: dict[int, int], tri
             if skipped is not None:
                 skipped.append({"clip_id": clip.id, "split": clip.split, "reason": f"{type(exc).__name__}: {exc}"})
             continue
-        examples.append(Example(clip, class_index[clip.label], feats, window))
-    return examples
+        yield Example(clip, class_index[clip.label], feats, window)
+
+
+def example_batches(examples: Iterable[Example], batch_size: int) -> Iterator[list[Example]]:
+    """Consecutive batches of ``batch_size`` examples (the last shorter), drawn from ``examples`` as needed."""
+    batch: list[Example] = []
+    for example in examples:
+        batch.append(example)
+        if len(batch) == batch_size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def without_features(example: Example) -> Example:
+    """``example`` once its features are used: clip, target and window kept (what predictions are reported with)."""
+    return Example(example.clip, example.target, {}, example.window)

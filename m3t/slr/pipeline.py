@@ -29,7 +29,7 @@ from m3t.experiment import ExperimentConfig, section_params, start_run
 from m3t.reporting import csv_text
 from m3t.runtime import choose_device
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import data_version, read_split
+from m3t.shards.io import data_version, iter_split, read_split
 from m3t.shards.schema import FittedClip
 from m3t.slr.checkpoint import LoadedSLR, ProbeMeta, load_slr
 from m3t.slr.config import SLRConfig, SLREvaluateConfig, SLRTrainConfig
@@ -42,7 +42,15 @@ from m3t.slr.evaluate import (
     plot_confusion,
     topk_hits,
 )
-from m3t.slr.features import Example, FrozenEncoders, build_examples, variant_streams
+from m3t.slr.features import (
+    Example,
+    FrozenEncoders,
+    build_examples,
+    example_batches,
+    iter_examples,
+    variant_streams,
+    without_features,
+)
 from m3t.slr.model import ProbeDims
 from m3t.slr.table import table_csv, table_markdown
 from m3t.slr.train import predict_logits, run_key, train_slr
@@ -266,7 +274,7 @@ def run_evaluate_slr(eval_cfg: SLREvaluateConfig, body: BodyModel | None, data: 
     encoders.to(device)
     classes = ClassTable(first.meta.classes, first.meta.class_names)
     meta_splits = corpus_metadata(data, corpus)
-    clips = labelled(read_split(data.shards_dir(corpus), eval_cfg.split))
+    clips = labelled(read_split(data.shards_dir(corpus), eval_cfg.split, modalities=[]))  # metadata: the checks
     if not clips:
         raise ValueError(f"corpus {corpus!r}: no labelled clip in the {eval_cfg.split} split of "
                          f"{data.shards_dir(corpus)}")
@@ -276,16 +284,23 @@ def run_evaluate_slr(eval_cfg: SLREvaluateConfig, body: BodyModel | None, data: 
                          "trained with; rerun train-slr")
     skipped: list[dict] = []
     trimmer = Trimmer(body, first.model.cfg.trim)
-    examples = build_examples(clips, classes.index, trimmer, encoders, streams_of(probes), first.model.cfg.max_steps,
-                              bad_clips=eval_cfg.bad_clips, skipped=skipped)
+    motion = (c for c in iter_split(data.shards_dir(corpus), eval_cfg.split) if c.clip.label is not None)
+    examples, logits_of = [], {variant: [] for variant in probes}
+    # a batch of clips is encoded, scored by every probe and let go: memory for one batch, whatever the split
+    for batch in example_batches(iter_examples(motion, classes.index, trimmer, encoders, streams_of(probes),
+                                               first.model.cfg.max_steps, bad_clips=eval_cfg.bad_clips,
+                                               skipped=skipped), eval_cfg.batch_size):
+        for variant, probe in probes.items():
+            logits_of[variant].append(predict_logits(probe.model, batch, eval_cfg.batch_size))
+        examples += [without_features(e) for e in batch]
     if not examples:
         raise ValueError(f"every {eval_cfg.split} clip of corpus {corpus!r} was skipped (see skipped.jsonl)")
     pairs = pair_classes((c for split in SPLITS for c in meta_splits[split]), classes.index)
     targets = torch.tensor([e.target for e in examples], dtype=torch.long)
     out = data.metrics("slr")
     evaluations, rows = {}, []
-    for variant, probe in probes.items():
-        logits = predict_logits(probe.model, examples, eval_cfg.batch_size)
+    for variant in probes:
+        logits = torch.cat(logits_of[variant])
         evaluations[variant] = evaluate_logits(logits, targets, [e.clip for e in examples], pairs, eval_cfg.bootstrap,
                                                eval_cfg.confidence, eval_cfg.seed, f"NMFs-CSL: {SUBSET_HINT}")
         rows += prediction_rows(variant, examples, logits, classes, pairs)

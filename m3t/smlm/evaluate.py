@@ -11,7 +11,7 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +30,7 @@ from m3t.metrics.scorer import (
     score_on_worker,
 )
 from m3t.metrics.text import translation_metrics_by_language
+from m3t.shards.references import StoredClip
 from m3t.shards.schema import FittedClip
 from m3t.smlm.data import Example
 from m3t.smlm.generate import GeneratedMotion, generate_motion, translate
@@ -74,10 +75,14 @@ def score_against(scorer: MotionScorer, references: Sequence[FittedClip],
 
 class SMLMEvaluator:
     """Holds the evaluation clips, their references (registered with the scorer, posed when scored and cached
-    within ``frame_budget`` frames: :class:`m3t.metrics.scorer.MotionScorer`) and the frozen tokenizers."""
+    within ``frame_budget`` frames: :class:`m3t.metrics.scorer.MotionScorer`) and the frozen tokenizers.
+
+    ``references`` maps clip ids to fitted clips, in memory (:class:`m3t.shards.schema.FittedClip`) or left in
+    their shards (:class:`m3t.shards.references.SplitReferences`: parameters read when a clip is posed or its
+    reference given to a worker, so the evaluator's memory does not grow with the split)."""
 
     def __init__(self, body: BodyModel, tokenizers: dict[str, MotionTokenizer], vocab: SignVocabulary,
-                 examples: Sequence[Example], references: dict[str, FittedClip], batch_size: int = 16,
+                 examples: Sequence[Example], references: Mapping[str, FittedClip | StoredClip], batch_size: int = 16,
                  max_clips: int = 0, translation: bool = True, motion: MotionMetricsConfig = MotionMetricsConfig(),
                  frame_budget: int = REFERENCE_FRAMES, body_config=None):
         missing = [e.clip_id for e in examples if e.clip_id not in references]
@@ -92,7 +97,10 @@ class SMLMEvaluator:
         # motion.mode "soke_exact": SOKE's body rooting (SMPL-FX only)
         self.scorer = MotionScorer(body, motion, frame_budget)
         for cid, ref in self.references.items():  # posed at the first evaluation; reused while the budget holds them
-            self.scorer.reference(cid, ref.params, ref.identity)
+            if isinstance(ref, StoredClip):  # parameters left in the shard until posed
+                self.scorer.reference_on_demand(cid, ref.num_frames, ref.identity, lambda ref=ref: ref.params)
+            else:
+                self.scorer.reference(cid, ref.params, ref.identity)
 
     def points(self, params: dict[str, np.ndarray], identity: np.ndarray) -> dict[str, np.ndarray]:
         """{region: (T, K, 3) float64 metres} of a parameter sequence, as scored."""

@@ -10,8 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from m3t.shards.folders import DataConfig
-from m3t.shards.io import read_split
-from m3t.shards.schema import FittedClip
+from m3t.shards.references import SplitReferences
 from m3t.shards.tokens import (
     TokenShard,
     read_token_shard,
@@ -33,9 +32,10 @@ def load_tokens(data: DataConfig, split: str) -> list[TokenShard]:
     return shards
 
 
-def references(data: DataConfig, split: str) -> dict[str, FittedClip]:
-    """The fitted motion of a split by clip id: the reference of the DTW evaluation."""
-    return {c.clip.id: c for c in read_split(data.shards_dirs, split)}
+def references(data: DataConfig, split: str) -> SplitReferences:
+    """The fitted motion of a split by clip id: the reference of the DTW evaluation (metadata in memory,
+    parameters read from the shards when a clip is posed: memory that does not grow with the split)."""
+    return SplitReferences(data.shards_dirs, split)
 
 
 def vocabulary_for(model_cfg: SMLMConfig, train: list[TokenShard]) -> SignVocabulary:

@@ -138,3 +138,53 @@ def test_the_smlm_evaluator_scores_within_a_budget_as_without(body, clips):  # n
     assert budgeted.score_motion(generated) == expected
     assert budgeted.scorer.cached == () and default.scorer.cached == tuple(references)
     assert [c.group for c in expected.per_clip] == ["toy/DGS", "toy/DGS", "toy/CSL", "toy/CSL"]
+
+
+@pytest.mark.parametrize("frame_budget", [3, REFERENCE_FRAMES])
+def test_references_left_in_their_shards_score_as_references_in_memory(body, clips, tmp_path, monkeypatch,  # noqa: F811
+                                                                       frame_budget):
+    """SplitReferences (parameters read from the shard's row groups when posed) against the same FittedClips held
+    in memory: the same figures, in the process and on the executor path's pairs; nothing posed at registration."""
+    import m3t.shards.io as shard_io
+    from m3t.corpora.clip import Clip
+    from m3t.shards.io import write_shard
+    from m3t.shards.references import SplitReferences
+    from m3t.shards.schema import FittedClip
+    from m3t.smlm.data import Example
+    from m3t.smlm.evaluate import SMLMEvaluator
+
+    ident = body.default_identity().numpy()
+    examples = [Example(cid, group.split("/")[1], "text", np.zeros(1, np.int64), np.zeros((1, 4), np.int64))
+                for cid, group, _, _ in clips]
+    fitted = [FittedClip(Clip(cid, "toy", "test", group.split("/")[1], "s1", "text", "G", f"{cid}.npz", 25.0),
+                         "k", {k: np.asarray(v, np.float32) for k, v in ref.items()}, ident, {}, {}, body.name)
+              for cid, group, _, ref in clips]
+    monkeypatch.setattr(shard_io, "ROW_GROUP_FRAMES", 10)  # 9 | 5 4 | 8 frames: three row groups
+    (tmp_path / "toy").mkdir()
+    write_shard(tmp_path / "toy" / "test.parquet", fitted, body.layout)
+    stored = SplitReferences([tmp_path / "toy"], "test")
+    generated = {cid: pred for cid, _, pred, _ in clips}
+    in_memory = SMLMEvaluator(body, {}, None, examples, {f.clip.id: f for f in fitted}, frame_budget=frame_budget)
+    from_shards = SMLMEvaluator(body, {}, None, examples, stored, frame_budget=frame_budget)
+    assert stored._group is None, "registering read no parameters"
+    expected = in_memory.score_motion(generated)
+    for _ in range(2):  # the second time from the cache where it holds the reference
+        assert from_shards.score_motion(generated) == expected
+    assert from_shards.scorer.cached == in_memory.scorer.cached
+
+
+def test_a_reference_read_on_demand_is_checked_when_it_is_read(body, clips):  # noqa: F811
+    ident = body.default_identity().numpy()
+    _, group, pred, ref = clips[0]
+    scorer = MotionScorer(body)
+    scorer.reference_on_demand("a", 9, ident, lambda: ref)
+    assert scorer.score([MotionPair("a", group, pred, ident)]) == registered(body, clips[:1]).score(
+        [MotionPair("a", group, pred, ident)])
+    scorer.reference_on_demand("a", 8, ident, lambda: ref)  # replaced: now announced one frame short
+    with pytest.raises(ValueError, match=r"reference of clip 'a': 9 frames read, 8 announced; its shard changed"):
+        scorer.score([MotionPair("a", group, pred, ident)])
+    scorer.reference_on_demand("a", 9, ident, lambda: {k: v[:, :-1] for k, v in ref.items()})
+    with pytest.raises(ValueError, match=r"reference of clip 'a': "):
+        scorer.score([MotionPair("a", group, pred, ident)])
+    with pytest.raises(ValueError, match=r"reference of clip 'b': identity of shape \(2,\)"):
+        scorer.reference_on_demand("b", 9, np.zeros(2), lambda: ref)

@@ -182,3 +182,61 @@ def test_tokenize_over_several_row_groups_writes_the_bytes_of_the_one_group_shar
     assert summaries[0] == summaries[1] and summaries[0]["rejected"] == 1
     for name in ("train.parquet", "dev.parquet", "test.parquet", "rejected.jsonl", "summary.json"):
         assert (tmp_path / "tokens" / "grouped" / name).read_bytes() == (tmp_path / "tokens" / "single" / name).read_bytes()
+
+
+# ---------------------------------------------------------------- a split's references left in their shards
+def test_split_references_hold_metadata_and_read_parameters_from_their_row_group(tmp_path, clips,  # noqa: F811
+                                                                                monkeypatch):
+    from m3t.shards.references import SplitReferences
+
+    monkeypatch.setattr(shard_io, "ROW_GROUP_FRAMES", SMALL)
+    for corpus, part in (("one", clips[:4]), ("two", clips[4:])):
+        (tmp_path / corpus).mkdir()
+        write_shard(tmp_path / corpus / "test.parquet", part, LAYOUT)
+    folders = [tmp_path / "one", tmp_path / "two"]
+    refs = SplitReferences(folders, "test")
+    assert list(refs) == [c.clip.id for c in clips] and len(refs) == 6
+    assert refs._group is None, "building the references reads no parameter column"
+    want = read_split(folders, "test")
+    for got in (refs[c.clip.id] for c in want):
+        assert got.num_frames == len(next(iter(got.params.values())))
+    # every field, parameters included, equal to reading the split; one row group held at a time
+    assert_same_clips([refs[c.clip.id] for c in want], want)
+    reads = []
+    monkeypatch.setattr("m3t.shards.references.read_row_group",
+                        lambda *where: reads.append(where) or shard_io.read_row_group(*where))
+    for cid in ("clip-0000", "clip-0001", "clip-0002", "clip-0000", "clip-0005"):
+        refs[cid].params  # noqa: B018 - the read is the point
+    # clip-0000 and -0001 share the first group of "one"; clip-0002 is the next; -0005 the second group of "two"
+    assert reads == [(folders[0] / "test.parquet", 0), (folders[0] / "test.parquet", 1),
+                     (folders[0] / "test.parquet", 0), (folders[1] / "test.parquet", 1)]
+    assert len(refs._group[1]) == 1
+
+
+def test_split_references_refuse_an_id_in_two_corpora_and_name_a_missing_shard(tmp_path, clips):  # noqa: F811
+    from m3t.shards.references import SplitReferences
+
+    for corpus in ("one", "two"):
+        (tmp_path / corpus).mkdir()
+        write_shard(tmp_path / corpus / "test.parquet", clips[:2], LAYOUT)
+    with pytest.raises(ValueError, match=r"clip id 'clip-0000' is in both .*one.*two"):
+        SplitReferences([tmp_path / "one", tmp_path / "two"], "test")
+    with pytest.raises(FileNotFoundError, match=r"fit-corpus"):
+        SplitReferences([tmp_path / "one", tmp_path / "three"], "test")
+
+
+def test_a_row_group_read_alone_is_checked_and_names_its_row_in_the_shard(tmp_path, clips, monkeypatch):  # noqa: F811
+    monkeypatch.setattr(shard_io, "ROW_GROUP_FRAMES", SMALL)
+    path = write_shard(tmp_path / "s.parquet", clips, LAYOUT)
+    assert_same_clips(list(shard_io.read_row_group(path, 2).clips), [clips[3]])
+    with pytest.raises(IndexError, match=r"no row group 5; the shard has 5"):
+        shard_io.read_row_group(path, 5)
+    table = pq.read_table(path)
+    column = table.column("face").to_pylist()
+    column[4][1][0] = math.nan
+    field = table.schema.field("face")
+    damaged = table.set_column(table.schema.get_field_index("face"), field, pa.array(column, type=field.type))
+    out = _grouped(damaged, tmp_path / "damaged.parquet", rows_per_group=2)  # row 4 is the third group's first
+    assert len(shard_io.read_row_group(out, 1)) == 2  # the groups around it read
+    with pytest.raises(ShardFormatError, match=r"damaged.parquet: row 4 \(0-based\), column 'face' holds NaN"):
+        shard_io.read_row_group(out, 2)

@@ -400,3 +400,39 @@ def test_evaluation_refuses_probes_of_another_corpus_tokenizers_or_label_set(dat
         run_evaluate_slr(cfg, body, data)
     test_shard.write_bytes(kept)
     assert run_evaluate_slr(cfg, body, data).summary["clips"] == len([f for f in shard.clips if f.clip.label is not None])
+
+
+def test_evaluation_encodes_a_batch_at_a_time_and_scores_as_the_whole_split(corpus, tokenizers, body):
+    """iter_examples reads a clip only once the example before it is taken; logits of batches drawn from it, with
+    their features let go, equal the logits of the whole split held (one process: the same batches)."""
+    from m3t.slr.features import example_batches, iter_examples, without_features
+    from m3t.slr.train import predict_logits
+
+    clips = [fitted(sc, body) for sc in isolated(corpus)]
+    short = dataclasses.replace(clips[1], clip=dataclasses.replace(clips[1].clip, id="too-short"),
+                                params={k: v[:5] for k, v in clips[1].params.items()})
+    clips.insert(2, short)  # skipped: the batches after it are cut from the kept examples, as the held list is
+    labels = sorted({c.clip.label for c in clips})
+    index = {label: i for i, label in enumerate(labels)}
+    encoders, trimmer = FrozenEncoders(tokenizers), Trimmer(body, TINY_PROBE.trim)
+    probe = SLRProbe(TINY_PROBE, ProbeDims(encoders.width, len(labels), STREAM_ORDER))
+    pulled = []
+
+    def source():
+        for c in clips:
+            pulled.append(c.clip.id)
+            yield c
+
+    held = build_examples(clips, index, trimmer, encoders, STREAM_ORDER, 32, bad_clips="skip", skipped=[])
+    stream = iter_examples(source(), index, trimmer, encoders, STREAM_ORDER, 32, bad_clips="skip", skipped=[])
+    assert pulled == [] and next(stream).clip.id == clips[0].clip.id and pulled == [clips[0].clip.id]
+    assert next(stream).clip.id == clips[1].clip.id and len(pulled) == 2
+    logits, kept = [], []
+    for batch in example_batches(iter_examples(iter(clips), index, trimmer, encoders, STREAM_ORDER, 32,
+                                               bad_clips="skip", skipped=[]), 4):
+        logits.append(predict_logits(probe, batch, 4))
+        kept += [without_features(e) for e in batch]
+    assert [len(x) for x in logits] == [4] * (len(held) // 4) + ([len(held) % 4] if len(held) % 4 else [])
+    assert torch.equal(torch.cat(logits), predict_logits(probe, held, 4))
+    assert [(e.clip.id, e.target, e.window) for e in kept] == [(e.clip.id, e.target, e.window) for e in held]
+    assert "too-short" not in [e.clip.id for e in kept] and all(e.features == {} for e in kept)
