@@ -183,6 +183,17 @@ def open_executor(run: FitCorpusConfig) -> Iterator[Executor | None]:
             executor.shutdown(cancel_futures=True)
 
 
+@contextmanager
+def stage_executor(cluster: FitCorpusConfig | None) -> Iterator[Executor | None]:
+    """For a stage after fitting (tokenize, generate-smlm, evaluate-smlm): fit-corpus's Dask cluster when
+    ``cluster.executor`` is ``dask`` (:func:`open_executor`), else None: the stage's own process does the work."""
+    if cluster is None or cluster.executor != "dask":
+        yield None
+        return
+    with open_executor(cluster) as executor:
+        yield executor
+
+
 def submitted_in_order(executor: Executor, fn: Callable[..., Any], calls: Iterable[tuple]) -> Iterator[Any]:
     """``fn(*args)`` for each ``args`` of ``calls`` on ``executor``, results in the order of ``calls``, with at most
     the executor's :meth:`DaskExecutor.capacity` (two for another executor) calls in flight, so a stage holds only

@@ -11,12 +11,14 @@ Results are reported overall and per ``<corpus>/<language>`` group, the columns 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Mapping, Sequence
+import os
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from m3t.body.protocol import BodyModel
+from m3t.digest import file_digest
 from m3t.fitting.cluster import submitted_in_order
 from m3t.journal import Journal
 from m3t.metrics.motion import MotionMetricsConfig
@@ -32,6 +34,7 @@ from m3t.metrics.scorer import (
 from m3t.metrics.text import translation_metrics_by_language
 from m3t.shards.references import StoredClip
 from m3t.shards.schema import FittedClip
+from m3t.smlm.checkpoint import LoadedSMLM, load_smlm
 from m3t.smlm.data import Example
 from m3t.smlm.generate import GeneratedMotion, generate_motion, translate
 from m3t.smlm.model import SignMotionLM
@@ -109,23 +112,35 @@ class SMLMEvaluator:
     def motion_params(self, generated: GeneratedMotion) -> dict[str, np.ndarray]:
         return decode_streams(self.tokenizers, generated.tokens)
 
-    def _batches(self, desc: str, progress: bool) -> Iterator[int]:
+    def _chunks(self) -> list[list[Example]]:
+        """The evaluation clips in decoding batches of ``batch_size``, in order."""
+        return [self.examples[i: i + self.batch_size] for i in range(0, len(self.examples), self.batch_size)]
+
+    def _decoded(self, desc: str, progress: bool, chunks: list[list[Example]], results: Iterable[list]) -> dict:
+        """{clip id: result} of each chunk's results (made as they are drawn), with a progress bar over clips."""
         from tqdm.auto import tqdm
 
-        starts = range(0, len(self.examples), self.batch_size)
-        with tqdm(total=len(self.examples), desc=desc, unit="clip", disable=not progress) as bar:
-            for i in starts:
-                yield i
-                bar.update(min(self.batch_size, len(self.examples) - i))
-
-    def generate(self, model: SignMotionLM, progress: bool = False) -> dict[str, GeneratedMotion]:
         out = {}
-        for i in self._batches("generate", progress):
-            chunk = self.examples[i: i + self.batch_size]
-            for example, g in zip(chunk, generate_motion(model, self.vocab, [e.text for e in chunk],
-                                                         [e.language for e in chunk], truncate_text=True)):
-                out[example.clip_id] = g
+        with tqdm(total=len(self.examples), desc=desc, unit="clip", disable=not progress) as bar:
+            for chunk, made in zip(chunks, results):
+                out.update((e.clip_id, m) for e, m in zip(chunk, made, strict=True))
+                bar.update(len(chunk))
         return out
+
+    def generate(self, model: SignMotionLM, progress: bool = False, executor=None,
+                 checkpoint: str | os.PathLike | None = None) -> dict[str, GeneratedMotion]:
+        """Text -> motion tokens of every evaluation clip (greedy), a decoding batch at a time: here with
+        ``model``, or with an ``executor`` (:func:`m3t.fitting.cluster.stage_executor`) on its workers, which
+        load ``checkpoint`` (``model``'s file, at the same path) once per process; the same batches either way."""
+        chunks = self._chunks()
+        if executor is None:
+            made = (generate_motion(model, self.vocab, [e.text for e in c], [e.language for e in c],
+                                    truncate_text=True) for c in chunks)
+        else:
+            made = submitted_in_order(executor, generate_on_worker, ((worker_checkpoint(checkpoint),
+                                                                       [e.text for e in c], [e.language for e in c])
+                                                                      for c in chunks))
+        return self._decoded("generate", progress, chunks, made)
 
     def evaluate(self, model: SignMotionLM) -> EvaluationReport:
         """Generate (and translate) every evaluation clip with ``model``, then score."""
@@ -208,12 +223,53 @@ class SMLMEvaluator:
     def __call__(self, model: SignMotionLM) -> dict[str, float]:
         return self.evaluate(model).summary
 
-    def translate(self, model: SignMotionLM, progress: bool = False) -> dict[str, str]:
-        """Ground-truth motion tokens of every evaluation clip -> text."""
-        out = {}
-        for i in self._batches("translate", progress):
-            chunk = self.examples[i: i + self.batch_size]
-            for example, text in zip(chunk, translate(model, self.vocab, [e.motion for e in chunk],
-                                                      [e.language for e in chunk])):
-                out[example.clip_id] = text
-        return out
+    def translate(self, model: SignMotionLM, progress: bool = False, executor=None,
+                  checkpoint: str | os.PathLike | None = None) -> dict[str, str]:
+        """Ground-truth motion tokens of every evaluation clip -> text; ``executor`` and ``checkpoint`` as in
+        :meth:`generate`."""
+        chunks = self._chunks()
+        if executor is None:
+            made = (translate(model, self.vocab, [e.motion for e in c], [e.language for e in c]) for c in chunks)
+        else:
+            made = submitted_in_order(executor, translate_on_worker, ((worker_checkpoint(checkpoint),
+                                                                        [e.motion for e in c], [e.language for e in c])
+                                                                       for c in chunks))
+        return self._decoded("translate", progress, chunks, made)
+
+
+# ------------------------------------------------------------------------------------------ decoding on workers
+def worker_checkpoint(path: str | os.PathLike | None) -> tuple[str, str]:
+    """How a worker finds the run's SMLM: its absolute path (workers see the run's files at the same paths, as
+    fit-corpus's do) and the digest of its bytes, which the worker checks."""
+    if path is None:
+        raise ValueError("decoding on workers needs the checkpoint's path (generate(..., checkpoint=...))")
+    return os.path.abspath(path), file_digest(path, length=16)
+
+
+def generate_on_worker(checkpoint: tuple[str, str], texts: list[str], languages: list[str]) -> list[GeneratedMotion]:
+    """One decoding batch of :meth:`SMLMEvaluator.generate` on a worker process."""
+    loaded = _worker_smlm(checkpoint)
+    return generate_motion(loaded.model, loaded.vocab, texts, languages, truncate_text=True)
+
+
+def translate_on_worker(checkpoint: tuple[str, str], motions: list[np.ndarray], languages: list[str]) -> list[str]:
+    """One decoding batch of :meth:`SMLMEvaluator.translate` on a worker process."""
+    loaded = _worker_smlm(checkpoint)
+    return translate(loaded.model, loaded.vocab, motions, languages)
+
+
+_WORKER_SMLM: dict[tuple[str, str], LoadedSMLM] = {}
+
+
+def _worker_smlm(checkpoint: tuple[str, str]) -> LoadedSMLM:
+    """The checkpoint ``(path, digest)``, loaded once per worker process (the last one only: a 396M-parameter
+    model is large); a file at that path with other bytes is refused."""
+    if checkpoint not in _WORKER_SMLM:
+        path, digest = checkpoint
+        found = file_digest(path, length=16)
+        if found != digest:
+            raise RuntimeError(f"the SMLM checkpoint {path} seen by this worker (sha256 {found}...) is not the run's "
+                               f"({digest}...); workers must see the run's files at the same paths")
+        _WORKER_SMLM.clear()
+        _WORKER_SMLM[checkpoint] = load_smlm(path)
+    return _WORKER_SMLM[checkpoint]

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +34,7 @@ from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
 from m3t.digest import file_digest, json_digest
 from m3t.experiment import ExperimentConfig, start_run
-from m3t.fitting.cluster import open_executor
+from m3t.fitting.cluster import stage_executor
 from m3t.fitting.config import FitCorpusConfig
 from m3t.journal import Journal
 from m3t.metrics.text import SLT_DEFINITION
@@ -83,8 +82,7 @@ def run_evaluate(cfg: GenerateConfig, data: DataConfig, body: BodyModel,
     metrics_dir = data.metrics("smlm")
     judge = judge or BackTranslationConfig()
     journal = Journal(metrics_dir / JOURNAL_NAME, evaluation_key(cfg, data, judge, [shard_path, text_path]))
-    distributed = cluster is not None and cluster.executor == "dask"
-    with open_executor(cluster) if distributed else nullcontext() as executor:
+    with stage_executor(cluster) as executor:
         report = evaluator.score(generated, translations, journal, executor)
     # every clip of the split is scored: clips over the model's limits were cut and kept; only clips the
     # vocabulary cannot take at all (a language without prompts, no text) are left out, and counted here

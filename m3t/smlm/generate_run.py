@@ -4,7 +4,8 @@
   ground-truth motion tokens -> text; writes ``generated.parquet``, ``translations.jsonl``,
   ``pose/<clip>.pose`` and, for the first ``smlm_generate.render_clips`` clips, ``renders/<clip>.mp4`` (the
   body surface, reference / generated side by side) and ``renders/<clip>_skeleton.mp4`` (their skeletons and
-  face points overlaid) into ``data.generated``.
+  face points overlaid) into ``data.generated``. With ``fit_corpus.executor: dask`` the decoding (text -> motion,
+  motion -> text) runs on fit-corpus's Dask cluster, a batch per task.
 """
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from dataclasses import dataclass
 from m3t.atomic import write_jsonl
 from m3t.body.factory import BodyConfig, load_body_model
 from m3t.body.protocol import BodyModel
+from m3t.fitting.cluster import stage_executor
+from m3t.fitting.config import FitCorpusConfig
 from m3t.metrics.motion import MotionMetricsConfig
 from m3t.shards.folders import DataConfig
 from m3t.shards.tokens import (
@@ -47,7 +50,10 @@ def evaluator_for(cfg: GenerateConfig, data: DataConfig, body: BodyModel, device
     return GenerationSetup(loaded, evaluator, info, skipped, cut)
 
 
-def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progress: bool = True) -> dict[str, float]:
+def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progress: bool = True,
+                 cluster: FitCorpusConfig | None = None) -> dict[str, float]:
+    """``cluster`` (params ``fit_corpus``) with ``executor: dask``: the decoding batches run on that cluster, whose
+    workers load the checkpoint from the same path; the outputs are the same."""
     from tqdm.auto import tqdm
 
     from m3t.render.mesh import clip_vertices
@@ -59,8 +65,10 @@ def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progres
     loaded, evaluator, info, skipped = setup.loaded, setup.evaluator, setup.info, setup.skipped + setup.cut
     out = data.generated
     out.mkdir(parents=True, exist_ok=True)
-    generated = evaluator.generate(loaded.model, progress)
-    translations = evaluator.translate(loaded.model, progress)
+    checkpoint = data.smlm_dir / "smlm.pt"
+    with stage_executor(cluster) as executor:
+        generated = evaluator.generate(loaded.model, progress, executor, checkpoint)
+        translations = evaluator.translate(loaded.model, progress, executor, checkpoint)
     clips = []
     for example in evaluator.examples:
         g = generated[example.clip_id]
@@ -92,7 +100,8 @@ def run_generate(cfg: GenerateConfig, data: DataConfig, body: BodyModel, progres
             "stopped_rate": float(sum(generated[e.clip_id].stopped for e in evaluator.examples) / max(len(clips), 1))}
 
 
-def generate(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, progress: bool = True) -> dict[str, float]:
-    return run_generate(cfg, data, load_body_model(body_cfg), progress)
+def generate(cfg: GenerateConfig, data: DataConfig, body_cfg: BodyConfig, progress: bool = True,
+             cluster: FitCorpusConfig | None = None) -> dict[str, float]:
+    return run_generate(cfg, data, load_body_model(body_cfg), progress, cluster)
 
 

@@ -7,7 +7,7 @@ streams per clip, written to ``<tokens_root>/<corpus>/<split>.parquet``. A clip 
 the others go on. Clips shorter than one token window are edge-padded to one token. The fitted clips are
 streamed one shard row group at a time (:func:`m3t.shards.io.iter_shard`); only the token clips, a few integers
 per frame window, are kept until their shard is written. With ``fit_corpus.executor: dask`` the row groups are
-tokenised on the Dask cluster fit-corpus uses (:func:`m3t.fitting.cluster.open_executor`; workers load the
+tokenised on the Dask cluster fit-corpus uses (:func:`m3t.fitting.cluster.stage_executor`; workers load the
 tokenizers from the same paths, one torch thread each), and the token shards are the same bytes.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 from m3t.atomic import write_json, write_jsonl
 from m3t.corpora.splits import SPLITS
 from m3t.digest import file_digest
-from m3t.fitting.cluster import open_executor, submitted_in_order
+from m3t.fitting.cluster import stage_executor, submitted_in_order
 from m3t.fitting.config import FitCorpusConfig
 from m3t.shards.folders import DataConfig
 from m3t.shards.io import iter_shard, split_shards
@@ -124,12 +124,8 @@ def run_tokenize(data: DataConfig, cluster: FitCorpusConfig | None = None) -> di
     """Token shards of every training corpus, by corpus name. ``cluster`` (params ``fit_corpus``): with ``executor:
     dask`` the row groups are tokenised on that cluster (``dask_address``, or a LocalCluster of ``workers``
     processes); ``local`` tokenises in this process. The token shards are the same either way."""
-    from contextlib import nullcontext
-
-
     models, info = load_tokenizers(data.tokenizers_dir)
-    distributed = cluster is not None and cluster.executor == "dask"
-    with open_executor(cluster) if distributed else nullcontext() as executor:
+    with stage_executor(cluster) as executor:
         return {corpus: tokenize_corpus(models, info, data.shards_dir(corpus), data.tokens_dir(corpus), executor,
                                         data.tokenizers_dir)
                 for corpus in data.train_corpora}

@@ -528,3 +528,37 @@ def test_scoring_on_a_local_dask_cluster_gives_the_in_process_figures(evaluator,
         there = evaluator.score_generated(generated, steps, executor=executor)
     assert len(here.per_clip) == len(examples) and here.empty_rate > 0
     assert there.per_clip == here.per_clip and there.summary == here.summary
+
+
+def test_decoding_on_a_local_dask_cluster_gives_the_in_process_tokens_and_texts(evaluator, smlm_parts, tmp_path):
+    """fit_corpus.executor: dask decodes the batches on a LocalCluster of 2 one-thread workers that load the
+    checkpoint from its path: the tokens (and EOS flags) and the translations equal those made here, in one thread
+    as the workers run (discrete outputs of the same computation); a file with other bytes at that path is
+    refused by the worker."""
+    from m3t.fitting.cluster import open_executor
+    from m3t.fitting.config import FitCorpusConfig
+    from m3t.smlm.checkpoint import save_smlm
+    from m3t.smlm.evaluate import generate_on_worker, worker_checkpoint
+
+    model, vocab, examples = smlm_parts
+    path = save_smlm(tmp_path / "smlm.pt", model, vocab, 0, 0, "v", {})
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        here, texts_here = evaluator.generate(model), evaluator.translate(model)
+    finally:
+        torch.set_num_threads(threads)
+    with pytest.raises(ValueError, match="needs the checkpoint's path"):
+        evaluator.generate(model, executor=object())
+    with open_executor(FitCorpusConfig(executor="dask", workers=2)) as executor:
+        there = evaluator.generate(model, executor=executor, checkpoint=path)
+        texts_there = evaluator.translate(model, executor=executor, checkpoint=path)
+    assert list(there) == list(here) == [e.clip_id for e in examples] and len(examples) > evaluator.batch_size
+    for cid, g in here.items():
+        assert there[cid].stopped == g.stopped
+        assert {s: t.tolist() for s, t in there[cid].tokens.items()} == {s: t.tolist() for s, t in g.tokens.items()}
+    assert texts_there == texts_here
+    checkpoint = worker_checkpoint(path)
+    path.write_bytes(path.read_bytes() + b"\0")
+    with pytest.raises(RuntimeError, match=r"smlm.pt seen by this worker .* is not the run's"):
+        generate_on_worker(checkpoint, [examples[0].text], [examples[0].language])
