@@ -154,7 +154,7 @@ def _body_model_path(cfg: BaselinesConfig, generate: GenerateConfig, data: DataC
 
     clips = [c for c in read_production_split(data, generate.split) if c.clip.text.strip() and c.num_frames > 0]
     scorer = MotionScorer(body, MotionMetricsConfig(mode=generate.motion_metric))
-    for ref in clips:  # posed once for every system, as the SMLM evaluator poses its references
+    for ref in clips:  # posed once for every system while they fit the scorer's frame budget (then when scored)
         scorer.reference(ref.clip.id, ref.params, ref.identity)
     for system, made in produce_baselines(clips, train, lexicon_clips, cfg).items():
         scores = score_against(scorer, clips, made.motion)
