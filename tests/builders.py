@@ -118,3 +118,20 @@ def tiny_tokenizers(dims: dict[str, int] = DIMS, seed: int = 0) -> dict[str, Mot
         model.set_normalisation(0.1 * torch.randn(dim), 0.5 + torch.rand(dim))
         models[group] = model
     return models
+
+
+class RecordingRun:
+    """A stand-in MLflow run (:func:`m3t.experiment.start_run`'s): records what a stage driver logs, artifacts as
+    ``(path, folder)``."""
+
+    def __init__(self):
+        self.params, self.metrics, self.artifacts = {}, [], []
+
+    def log_params(self, params):
+        self.params.update(params)
+
+    def log_metrics(self, metrics, step=None):
+        self.metrics.append((dict(metrics), step))
+
+    def log_artifact(self, path, folder=None):
+        self.artifacts.append((Path(path), folder))

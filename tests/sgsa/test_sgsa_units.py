@@ -4,12 +4,12 @@ feeds the zero frame then the target shifted by one, and a table row is the newe
 (variant, seed). Written to pin behaviours that mutation testing found unchecked."""
 from __future__ import annotations
 
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+from builders import RecordingRun
 
 from m3t.experiment import RunRecord
 from m3t.sgsa.config import SGSAConfig
@@ -436,22 +436,6 @@ def test_evaluate_config_checks_counter_and_splits():
         assert config_error(SGSAEvaluateConfig, splits=splits) == (
             f"sgsa_evaluate.splits {list(splits)}: expected a non-empty subset of train, dev, test")
     assert SGSAEvaluateConfig(splits=("train",)).splits == ("train",)
-
-
-class RecordingRun:
-    """A stand-in MLflow run: records what the stage drivers log."""
-
-    def __init__(self):
-        self.params, self.metrics, self.artifacts = {}, [], []
-
-    def log_params(self, params):
-        self.params.update(params)
-
-    def log_metrics(self, metrics, step=None):
-        self.metrics.append((dict(metrics), step))
-
-    def log_artifact(self, path, folder=None):
-        self.artifacts.append((Path(path), folder))
 
 
 @pytest.fixture

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from builders import RecordingRun
 
 from m3t.experiment import RunRecord
 from m3t.slr.config import TrimConfig
@@ -195,22 +196,6 @@ def test_evaluations_come_back_from_a_runs_flat_metrics_with_every_count():
     assert ev.subsets_available and set(ev.scores) == {"overall", "confusing", "normal"}
 
 
-class RecordingRun:
-    """A stand-in MLflow run: records what the stage driver logs."""
-
-    def __init__(self):
-        self.params, self.metrics, self.artifacts = {}, [], []
-
-    def log_params(self, params):
-        self.params.update(params)
-
-    def log_metrics(self, metrics, step=None):
-        self.metrics.append((dict(metrics), step))
-
-    def log_artifact(self, path, folder=None):
-        self.artifacts.append(path)
-
-
 @pytest.mark.parametrize("corpus", [None, "other"], ids=["configured", "named"])
 def test_train_and_log_trains_the_named_corpus_and_logs_curves_report_and_files(monkeypatch, tmp_path, corpus):
     """train-slr's MLflow wrapper: the corpus it is given (else ``slr.corpus``) is trained, tagged and names the
@@ -257,8 +242,9 @@ def test_train_and_log_trains_the_named_corpus_and_logs_curves_report_and_files(
     assert run.run.params["slr.corpus"] == "synthetic" and "slr_train.seed" in run.run.params
     assert "data.models_dir" in run.run.params
     assert run.run.metrics == [({"full/train_loss": 2.0}, 3), ({"full/top1": 0.5}, None)]
-    assert run.run.artifacts == [data.slr_dir / "metrics.json", data.slr_dir / "skipped.jsonl",
-                                 data.slr_dir / "confusion_dev_a.png", data.slr_dir / "confusion_dev_b.png"]
+    assert run.run.artifacts == [(data.slr_dir / "metrics.json", None), (data.slr_dir / "skipped.jsonl", None),
+                                 (data.slr_dir / "confusion_dev_a.png", None),
+                                 (data.slr_dir / "confusion_dev_b.png", None)]
     untrimmed = dataclasses.replace(cfg, trim=dataclasses.replace(cfg.trim, enabled=False))
     pipeline.train_and_log(untrimmed, train_cfg, body_cfg, data, ExperimentConfig(), corpus, progress=True)
     assert trained[-1] == (expected, None, True)  # no body model without trimming
