@@ -13,7 +13,7 @@ one corpus (``slr.corpus``: its fitted shards ``data.shards_dir(corpus)``) and t
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -78,6 +78,12 @@ class ClassTable:
 def labelled(clips: Iterable[FittedClip]) -> list[FittedClip]:
     """The isolated-sign clips (``label`` set); sentence clips of the same corpus are not the probe's."""
     return [c for c in clips if c.clip.label is not None]
+
+
+def labelled_motion(data: DataConfig, corpus: str, split: str) -> Iterator[FittedClip]:
+    """The labelled clips of a split with their motion, read one shard row group at a time (for
+    :func:`m3t.slr.features.iter_examples`: the features are what a run keeps, not the motion)."""
+    return (c for c in iter_split(data.shards_dir(corpus), split) if c.clip.label is not None)
 
 
 def corpus_metadata(data: DataConfig, corpus: str) -> dict[str, list[FittedClip]]:
@@ -172,8 +178,8 @@ def run_train_slr(cfg: SLRConfig, train_cfg: SLRTrainConfig, body: BodyModel | N
     streams = streams_of(train_cfg.variants)
     dtype = torch.float16 if train_cfg.feature_dtype == "float16" else torch.float32
     skipped: list[dict] = []
-    examples = {split: build_examples(labelled(read_split(data.shards_dir(corpus), split)), classes.index, trimmer,
-                                      encoders, streams, cfg.max_steps, dtype, train_cfg.bad_clips, skipped)
+    examples = {split: build_examples(labelled_motion(data, corpus, split), classes.index, trimmer, encoders, streams,
+                                      cfg.max_steps, dtype, train_cfg.bad_clips, skipped)
                 for split in ("train", "dev")}
     version = data_version([data.shards_dir(corpus) / f"{s}.parquet" for s in ("train", "dev")]
                            + [data.tokenizers_dir / f"{g}.pt" for g in GROUPS])
@@ -284,7 +290,7 @@ def run_evaluate_slr(eval_cfg: SLREvaluateConfig, body: BodyModel | None, data: 
                          "trained with; rerun train-slr")
     skipped: list[dict] = []
     trimmer = Trimmer(body, first.model.cfg.trim)
-    motion = (c for c in iter_split(data.shards_dir(corpus), eval_cfg.split) if c.clip.label is not None)
+    motion = labelled_motion(data, corpus, eval_cfg.split)
     examples, logits_of = [], {variant: [] for variant in probes}
     # a batch of clips is encoded, scored by every probe and let go: memory for one batch, whatever the split
     for batch in example_batches(iter_examples(motion, classes.index, trimmer, encoders, streams_of(probes),
