@@ -3,9 +3,9 @@
 Writes are atomic: the shard is written to a temporary file next to the destination and moved into
 place with :func:`os.replace`, so a reader never sees a half-written shard. A shard is stored in Parquet row
 groups of whole clips holding about :data:`ROW_GROUP_FRAMES` frames each, so :class:`ShardWriter` and
-:func:`iter_shard` / :func:`iter_split` need memory for one row group, not the whole shard (How2Sign's train
-split is ~6M frames, ~7 GB of float32). Arrays are converted in bulk (one concatenation / one reshape per
-column and row group), never frame by frame.
+:func:`iter_shard` needs memory for one row group, not the whole shard (How2Sign's train split is ~6M frames,
+~7 GB of float32), and :func:`iter_split` for :data:`READ_BATCH_ROWS` clips. Arrays are converted in bulk (one
+concatenation / one reshape per column and batch of rows), never frame by frame.
 
 Axis legend: N clips in a shard (or row group), T frames, D_m per-frame dim of modality m, P identity dim.
 """
@@ -53,6 +53,14 @@ group that reaches it is closed, so a group holds at most this many frames excep
 which is a group of its own. 65536 frames of the Anny layout (304 float32 per frame) are ~80 MB. A shard of at
 most this many frames is one row group, byte for byte the file written before groups were bounded (so its DVC
 hash stays)."""
+READ_BATCH_ROWS = 32
+"""Clips decoded at a time when a row group is read. Arrow decodes a nested ``list<fixed_size_list<float>>``
+column with temporaries (repetition and definition levels, pages, growing builders) that peak at several times
+the group's float data, and its allocator keeps what it freed: a whole 65,536-frame group read at once raised a
+process's resident memory by ~290 MB for ~80 MB of values. Decoded 32 clips at a time (about 6,000 frames at
+How2Sign's mean length) the temporaries stay a fraction of that, at the same speed. :func:`iter_split` holds one
+such batch of clips; :func:`iter_shard` and :func:`read_row_group` join a group's batches (its values once, in
+NumPy)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -392,15 +400,42 @@ def _contents(table: pa.Table, path: Path, layout: ModalityLayout, names: list[s
     return ShardContents(path=path, layout=layout, clips=tuple(clips), lengths=lengths)
 
 
-def _row_groups(pf: pq.ParquetFile, path: Path, layout: ModalityLayout, names: list[str]) -> Iterator[ShardContents]:
-    columns = [*METADATA_COLUMNS, IDENTITY_COLUMN, *names]
+def _columns(names: Sequence[str]) -> list[str]:
+    """The Parquet columns that reading the modalities ``names`` takes: the metadata, identity and those."""
+    return [*METADATA_COLUMNS, IDENTITY_COLUMN, *names]
+
+
+def _group_batches(pf: pq.ParquetFile, path: Path, layout: ModalityLayout, names: list[str], group: int,
+                   first_row: int, seen: set[str]) -> Iterator[ShardContents]:
+    """Row group ``group`` (whose first row is the shard's row ``first_row``), :data:`READ_BATCH_ROWS` rows at a
+    time; ``seen`` holds the ids of the rows before and gets these."""
+    for batch in pf.iter_batches(batch_size=READ_BATCH_ROWS, row_groups=[group], columns=_columns(names),
+                                 use_threads=True):
+        contents = _contents(pa.Table.from_batches([batch]), path, layout, names, first_row, seen)
+        first_row += len(contents)
+        yield contents
+
+
+def _joined(path: Path, layout: ModalityLayout, parts: Sequence[ShardContents]) -> ShardContents:
+    """Consecutive parts of one shard as one :class:`ShardContents`."""
+    lengths = np.concatenate([p.lengths for p in parts]) if parts else np.zeros(0, dtype=np.int64)
+    return ShardContents(path=path, layout=layout, clips=tuple(c for p in parts for c in p.clips), lengths=lengths)
+
+
+def _shard_batches(pf: pq.ParquetFile, path: Path, layout: ModalityLayout, names: list[str],
+                   whole_groups: bool) -> Iterator[ShardContents]:
+    """The rows of an open shard in file order, one :class:`ShardContents` per row group (``whole_groups``) or
+    per batch of at most :data:`READ_BATCH_ROWS` rows; closes the file when done."""
     seen: set[str] = set()
     first_row = 0
     with pf:
         for group in range(pf.num_row_groups):
-            contents = _contents(pf.read_row_group(group, columns=columns), path, layout, names, first_row, seen)
-            first_row += len(contents)
-            yield contents
+            batches = _group_batches(pf, path, layout, names, group, first_row, seen)
+            if whole_groups:
+                batches = iter([_joined(path, layout, list(batches))])
+            for contents in batches:
+                first_row += len(contents)
+                yield contents
 
 
 def iter_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None) -> Iterator[ShardContents]:
@@ -422,7 +457,7 @@ def iter_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     """
     path = Path(path)
     pf, layout, names = _open_shard(path, modalities)
-    return _row_groups(pf, path, layout, names)
+    return _shard_batches(pf, path, layout, names, whole_groups=True)
 
 
 def read_row_group(path: str | os.PathLike, group: int, modalities: Sequence[str] | None = None) -> ShardContents:
@@ -435,8 +470,7 @@ def read_row_group(path: str | os.PathLike, group: int, modalities: Sequence[str
         if not 0 <= group < pf.num_row_groups:
             raise IndexError(f"{path}: no row group {group}; the shard has {pf.num_row_groups}")
         first_row = sum(pf.metadata.row_group(g).num_rows for g in range(group))
-        table = pf.read_row_group(group, columns=[*METADATA_COLUMNS, IDENTITY_COLUMN, *names])
-        return _contents(table, path, layout, names, first_row, set())
+        return _joined(path, layout, list(_group_batches(pf, path, layout, names, group, first_row, set())))
 
 
 def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None) -> ShardContents:
@@ -459,15 +493,13 @@ def read_shard(path: str | os.PathLike, modalities: Sequence[str] | None = None)
     """
     path = Path(path)
     pf, layout, names = _open_shard(path, modalities)
-    groups = list(_row_groups(pf, path, layout, names))
-    lengths = np.concatenate([g.lengths for g in groups]) if groups else np.zeros(0, dtype=np.int64)
-    return ShardContents(path=path, layout=layout, clips=tuple(c for g in groups for c in g.clips), lengths=lengths)
+    return _joined(path, layout, list(_shard_batches(pf, path, layout, names, whole_groups=False)))
 
 
 def iter_split(shards_dirs: Sequence[str | os.PathLike] | str | os.PathLike, split: str,
                modalities: Sequence[str] | None = None) -> Iterator[FittedClip]:
-    """The fitted clips of ``split`` across one or several corpora's shard folders (in the given order), one
-    row group in memory at a time.
+    """The fitted clips of ``split`` across one or several corpora's shard folders (in the given order),
+    :data:`READ_BATCH_ROWS` clips in memory at a time.
 
     Every shard is checked to exist at the call (a missing one names the stage to run); a clip id found in two
     corpora is refused when it is reached (ids key every downstream join). Only the ids seen so far are kept.
@@ -491,8 +523,9 @@ def split_shards(shards_dirs: Sequence[str | os.PathLike] | str | os.PathLike, s
 def _split_clips(paths: list[Path], modalities: Sequence[str] | None) -> Iterator[FittedClip]:
     seen: dict[str, Path] = {}
     for path in paths:
-        for group in iter_shard(path, modalities):
-            for clip in group.clips:
+        pf, layout, names = _open_shard(path, modalities)
+        for batch in _shard_batches(pf, path, layout, names, whole_groups=False):
+            for clip in batch.clips:
                 if clip.clip.id in seen:
                     raise ValueError(f"clip id {clip.clip.id!r} is in both {seen[clip.clip.id]} and {path}; clip ids "
                                      "must be unique across data.train_corpora")

@@ -81,7 +81,7 @@ def labelled(clips: Iterable[FittedClip]) -> list[FittedClip]:
 
 
 def labelled_motion(data: DataConfig, corpus: str, split: str) -> Iterator[FittedClip]:
-    """The labelled clips of a split with their motion, read one shard row group at a time (for
+    """The labelled clips of a split with their motion, read a few clips at a time (for
     :func:`m3t.slr.features.iter_examples`: the features are what a run keeps, not the motion)."""
     return (c for c in iter_split(data.shards_dir(corpus), split) if c.clip.label is not None)
 

@@ -240,3 +240,42 @@ def test_a_row_group_read_alone_is_checked_and_names_its_row_in_the_shard(tmp_pa
     assert len(shard_io.read_row_group(out, 1)) == 2  # the groups around it read
     with pytest.raises(ShardFormatError, match=r"damaged.parquet: row 4 \(0-based\), column 'face' holds NaN"):
         shard_io.read_row_group(out, 2)
+
+
+def test_a_row_group_decoded_a_few_rows_at_a_time_reads_as_one_and_keeps_its_checks(tmp_path, clips,  # noqa: F811
+                                                                                   monkeypatch):
+    """Groups are decoded ``READ_BATCH_ROWS`` clips at a time (Arrow's temporaries for a whole group are several
+    times its values): iter_split streams such batches, iter_shard and read_row_group join them into the group.
+    The checks still span the group: an id repeated in a later batch, a damaged frame's row in the shard."""
+    path = write_shard(tmp_path / "one_group.parquet", clips, LAYOUT)  # six clips, one row group
+    assert pq.ParquetFile(path).num_row_groups == 1
+    monkeypatch.setattr(shard_io, "READ_BATCH_ROWS", 4)
+    decoded: list[int] = []
+    contents = shard_io._contents
+    monkeypatch.setattr(shard_io, "_contents", lambda table, *rest: decoded.append(table.num_rows) or
+                        contents(table, *rest))
+    groups = list(iter_shard(path))
+    assert len(groups) == 1 and groups[0].lengths.tolist() == [c.num_frames for c in clips]
+    assert decoded == [4, 2]  # the group took two decodes, not one
+    assert_same_clips(list(groups[0].clips), clips)
+    assert_same_clips(list(shard_io.read_row_group(path, 0).clips), clips)
+    split = tmp_path / "corpus"
+    split.mkdir()
+    path.rename(split / "train.parquet")
+    assert_same_clips(list(iter_split(split, "train")), clips)
+    path = split / "train.parquet"
+    table = pq.read_table(path)
+    ids = table.column("id").to_pylist()
+    ids[5] = ids[1]  # the second batch repeats an id of the first
+    twice = table.set_column(table.schema.get_field_index("id"), table.schema.field("id"), pa.array(ids, pa.string()))
+    pq.write_table(twice, tmp_path / "twice.parquet")
+    for read in (lambda p: list(iter_shard(p)), read_shard, lambda p: shard_io.read_row_group(p, 0)):
+        with pytest.raises(ShardFormatError, match=r"clip ids \['clip-0001'\] appear twice"):
+            read(tmp_path / "twice.parquet")
+    column = table.column("body").to_pylist()
+    column[5][3][0] = math.inf
+    field = table.schema.field("body")
+    pq.write_table(table.set_column(table.schema.get_field_index("body"), field, pa.array(column, type=field.type)),
+                   tmp_path / "damaged.parquet")
+    with pytest.raises(ShardFormatError, match=r"damaged.parquet: row 5 \(0-based\), column 'body' holds NaN or inf"):
+        shard_io.read_row_group(tmp_path / "damaged.parquet", 0)
