@@ -34,7 +34,7 @@ Per stage and arm: ``wall_s``, ``peak_rss_mb``, ``clips`` / ``frames`` processed
 compares the largest arm with the smallest: the goal is peak RSS at most 1.5x and under 16 GB, throughput within
 20 %. A stage that runs past ``--stage-timeout`` is killed and recorded as stopped (what it took, where it stopped).
 
-    python benchmarks/bench_scale.py [--arms 1000 5000 31000] [--steps 200] [--stage-timeout 3600]
+    python benchmarks/bench_scale.py [--arms 1000 5000 31000] [--steps 200] [--stage-timeout 7200]
         [--work .cache/bench_scale] [--keep] [--out benchmarks/results/scale.json]
 
 Stages can be run again on arms kept by an earlier run (``--keep``), e.g. after a change to them:
@@ -387,7 +387,7 @@ def main() -> None:
     parser.add_argument("--arms", type=int, nargs="+", default=[1000, 5000, 31000])
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--stage-timeout", type=float, default=3600.0)
+    parser.add_argument("--stage-timeout", type=float, default=7200.0)
     parser.add_argument("--work", default=str(ROOT / ".cache" / "bench_scale"))
     parser.add_argument("--models", default=str(ROOT / "models"))
     parser.add_argument("--keep", action="store_true")
