@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import os
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -430,10 +430,10 @@ def _shard_batches(pf: pq.ParquetFile, path: Path, layout: ModalityLayout, names
     first_row = 0
     with pf:
         for group in range(pf.num_row_groups):
-            batches = _group_batches(pf, path, layout, names, group, first_row, seen)
+            parts: Iterable[ShardContents] = _group_batches(pf, path, layout, names, group, first_row, seen)
             if whole_groups:
-                batches = iter([_joined(path, layout, list(batches))])
-            for contents in batches:
+                parts = [_joined(path, layout, list(parts))]
+            for contents in parts:
                 first_row += len(contents)
                 yield contents
 
